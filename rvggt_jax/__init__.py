@@ -1,0 +1,28 @@
+"""rvggt-jax: VGGT in JAX/Flax with the training-free RegimeVGGT accelerator.
+
+    params, config = rvggt_jax.load_pretrained("weights/")
+    out = jax.jit(rvggt_jax.rvggt_forward)(params, images, config.with_compression("regime"))
+"""
+
+import importlib
+
+from rvggt_jax.config import VGGTConfig
+
+# Public names resolved on first use, so importing a submodule (rvggt_jax.layers) stays
+# cheap and does not pull in every head.
+_LAZY = {
+    "rvggt_forward": "rvggt_jax.model",
+    "InputError": "rvggt_jax.model",
+    "load_pretrained": "rvggt_jax.checkpoint",
+    "load_images": "rvggt_jax.io.images",
+    "cost_report": "rvggt_jax.cost",
+}
+
+__all__ = ["VGGTConfig", *_LAZY]
+__version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'rvggt_jax' has no attribute {name!r}")

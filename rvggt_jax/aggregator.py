@@ -1,0 +1,77 @@
+"""The alternating-attention aggregator: `depth` frame blocks interleaved with `depth`
+global blocks over camera, register and patch tokens.
+
+Frame blocks attend within each frame ([B*S, P, C]); global blocks attend across the
+whole sequence ([B, S*P, C]) and are where RegimeVGGT compresses (`compression.global_block`).
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from rvggt_jax import compression, layers
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.layers import Params
+from rvggt_jax.patch_embed import patch_embed
+
+
+def special_tokens(token: jax.Array, b: int, s: int) -> jax.Array:
+    """Upstream's first-frame/other-frames token pair [1, 2, X, C] -> [B*S, X, C]:
+    frame 0 takes entry 0, every other frame entry 1."""
+    first = jnp.broadcast_to(token[:, :1], (b, 1) + token.shape[2:])
+    rest = jnp.broadcast_to(token[:, 1:2], (b, s - 1) + token.shape[2:])
+    return jnp.concatenate([first, rest], axis=1).reshape((b * s,) + token.shape[2:])
+
+
+def aggregator_forward(
+    p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int]
+) -> tuple[dict[int, jax.Array], jax.Array, jax.Array]:
+    """images [B, S, 3, H, W] in [0, 1] ->
+    (outputs {layer: [B, S, P, 2C]} for the layers in `keep_layers`,
+     patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w]).
+
+    Each output concatenates the frame-block and global-block outputs of that layer; the
+    other layers' outputs are never materialised beyond their use."""
+    b, s, _, hh, ww = images.shape
+    ps = config.patch_size
+    h, w = hh // ps, ww // ps
+    c = config.embed_dim
+    keep = set(keep_layers)
+
+    patch_tokens, saliency = patch_embed(p["patch_embed"], images, config)
+    tokens = jnp.concatenate(
+        [special_tokens(p["camera_token"], b, s), special_tokens(p["register_token"], b, s), patch_tokens],
+        axis=1,
+    )
+    num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
+    chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
+
+    frame_pos = jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None]
+    global_pos = jnp.tile(frame_pos, (1, s, 1))
+
+    state = None
+    if not config.compression.is_dense:
+        state = compression.init_state(config, saliency, s, (h, w))
+
+    outputs: dict[int, jax.Array] = {}
+    x = tokens
+    for i in range(config.depth):
+        x = layers.block(p["frame_blocks"][str(i)], x.reshape(b * s, num_tokens, c),
+                         config.num_heads, frame_pos, config.rope_freq)
+        frame_out = x
+        x = x.reshape(b, s * num_tokens, c)
+        p_global = p["global_blocks"][str(i)]
+        if state is None:
+            x = layers.block(p_global, x, config.num_heads, global_pos, config.rope_freq)
+        else:
+            x, state = compression.global_block(p_global, x, global_pos, i, config, state)
+        if i in keep:
+            outputs[i] = jnp.concatenate(
+                [frame_out.reshape(b, s, num_tokens, c), x.reshape(b, s, num_tokens, c)], axis=-1
+            )
+    return outputs, patch_tokens, saliency
+

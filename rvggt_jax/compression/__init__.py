@@ -1,0 +1,1 @@
+"""RegimeVGGT compression of the global blocks (token merging + K/V downsampling)."""

@@ -1,0 +1,195 @@
+"""Model configuration: frozen, hashable dataclasses used as static `jax.jit` arguments.
+
+`VGGTConfig` is registered as a static pytree node, so `jax.jit(rvggt_forward)(params,
+images, config)` treats it as part of the compiled function's identity (one compilation
+per (input shape, config)) without `static_argnames`.
+
+The JSON form is the extended VGGT `config.json` of the test fixtures: every key that is
+absent takes the VGGT-1B value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+import jax
+
+from rvggt_jax.compression.config import CompressionConfig, make_compression
+
+
+@dataclass(frozen=True)
+class DinoConfig:
+    """DINOv2 ViT/14 with registers used as the patch embed (its width is `embed_dim`)."""
+
+    depth: int = 24
+    num_heads: int = 16
+    mlp_ratio: float = 4.0
+    interpolate_antialias: bool = True
+    interpolate_offset: float = 0.0
+    layer_norm_eps: float = 1e-6
+
+
+@dataclass(frozen=True)
+class CameraHeadConfig:
+    num_heads: int = 16
+    trunk_depth: int = 4
+    iters: int = 4
+    mlp_ratio: float = 4.0
+    trans_act: str = "linear"
+    quat_act: str = "linear"
+    fl_act: str = "relu"
+
+
+@dataclass(frozen=True)
+class DPTHeadConfig:
+    features: int = 256
+    out_channels: tuple[int, ...] = (256, 512, 1024, 1024)
+    intermediate_layer_idx: tuple[int, ...] = (4, 11, 17, 23)
+    pos_embed: bool = True
+
+
+@dataclass(frozen=True)
+class TrackHeadConfig:
+    """Track head sizes. `out_channels`/`intermediate_layer_idx` of its DPT feature
+    extractor default (None) to the DPT head's."""
+
+    features: int = 128
+    hidden_size: int = 384
+    corr_levels: int = 7
+    corr_radius: int = 4
+    stride: int = 2
+    iters: int = 4
+    predict_conf: bool = True
+    out_channels: tuple[int, ...] | None = None
+    intermediate_layer_idx: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True)
+class VGGTConfig:
+    """Everything that fixes the model's shapes and the forward computation."""
+
+    img_size: int = 518
+    patch_size: int = 14
+    embed_dim: int = 1024
+    depth: int = 24
+    num_heads: int = 16
+    mlp_ratio: float = 4.0
+    num_register_tokens: int = 4
+    rope_freq: float = 100.0
+    qk_norm: bool = True
+    dino: DinoConfig = field(default_factory=DinoConfig)
+    camera_head: CameraHeadConfig = field(default_factory=CameraHeadConfig)
+    dpt_head: DPTHeadConfig = field(default_factory=DPTHeadConfig)
+    track_head: TrackHeadConfig = field(default_factory=TrackHeadConfig)
+    enable_camera: bool = True
+    enable_depth: bool = True
+    enable_point: bool = True
+    enable_track: bool = True
+    compression: CompressionConfig = field(default_factory=CompressionConfig)
+    # Output requests (static, so they live here): extra entries of rvggt_forward's dict.
+    return_saliency: bool = False  # "saliency" [B,S,h*w] (Psi) and "patch_tokens" [B*S,h*w,C]
+    return_layers: tuple[int, ...] = ()  # "aggregated_XX" [B,S,P,2C] for these layers
+
+    # ---- derived sizes -------------------------------------------------------------
+    @property
+    def head_dim(self) -> int:
+        return self.embed_dim // self.num_heads
+
+    @property
+    def patch_start_idx(self) -> int:
+        """Camera token + register tokens precede the patches in every frame."""
+        return 1 + self.num_register_tokens
+
+    @property
+    def track_out_channels(self) -> tuple[int, ...]:
+        return self.track_head.out_channels or self.dpt_head.out_channels
+
+    @property
+    def track_layer_idx(self) -> tuple[int, ...]:
+        return self.track_head.intermediate_layer_idx or self.dpt_head.intermediate_layer_idx
+
+    def needed_layers(self, with_track: bool) -> tuple[int, ...]:
+        """Aggregator layers some head reads; only these outputs are kept alive."""
+        need: set[int] = set()
+        if self.enable_camera:
+            need.add(self.depth - 1)
+        if self.enable_depth or self.enable_point:
+            need.update(self.dpt_head.intermediate_layer_idx)
+        if with_track and self.enable_track:
+            need.update(self.track_layer_idx)
+        return tuple(sorted(need))
+
+    # ---- presets and variants ------------------------------------------------------
+    @classmethod
+    def vggt_1b(cls) -> "VGGTConfig":
+        """The published facebook/VGGT-1B layout."""
+        return cls()
+
+    def with_outputs(self, saliency: bool = False, layers: tuple[int, ...] = ()) -> "VGGTConfig":
+        """A copy that also returns the saliency / these aggregator layers."""
+        return replace(self, return_saliency=saliency, return_layers=tuple(layers))
+
+    def with_compression(self, name: str, **overrides: Any) -> "VGGTConfig":
+        """A copy of this config with the named compression preset (see
+        `rvggt_jax.compression.config.PRESETS`), fields overridden by name."""
+        return replace(self, compression=make_compression(name, self.depth, **overrides))
+
+    def validate(self) -> "VGGTConfig":
+        if self.embed_dim % self.num_heads:
+            raise ValueError(f"embed_dim {self.embed_dim} is not divisible by num_heads {self.num_heads}")
+        if self.head_dim % 4:
+            raise ValueError(f"2D RoPE needs a head dimension divisible by 4, got {self.head_dim}")
+        if self.embed_dim % self.dino.num_heads:
+            raise ValueError(f"embed_dim {self.embed_dim} is not divisible by dino.num_heads {self.dino.num_heads}")
+        for i in self.dpt_head.intermediate_layer_idx + self.track_layer_idx:
+            if not 0 <= i < self.depth:
+                raise ValueError(f"intermediate layer {i} outside the aggregator's {self.depth} layers")
+        if len(self.dpt_head.out_channels) != 4 or len(self.dpt_head.intermediate_layer_idx) != 4:
+            raise ValueError("the DPT head reads exactly 4 layers and needs 4 out_channels")
+        return self
+
+    # ---- JSON ----------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "VGGTConfig":
+        """Build from the extended VGGT `config.json`; unknown keys are an error, except
+        `fixture` (test metadata) and the hub mixin's bookkeeping keys."""
+        ignored = {"fixture", "_name_or_path", "architectures", "model_type"}
+        return _build(cls, {k: v for k, v in d.items() if k not in ignored}).validate()
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> "VGGTConfig":
+        with open(path) as f:
+            return cls.from_dict(json.load(f))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self, path: str | Path) -> None:
+        with open(path, "w") as f:
+            json.dump(self.to_dict(), f, indent=1)
+
+
+def _build(cls, d: Mapping[str, Any]):
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(d) - set(known))
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown config keys {unknown}")
+    kwargs = {}
+    for name, value in d.items():
+        default = getattr(cls(), name) if name != "compression" else None
+        if name == "compression":
+            kwargs[name] = CompressionConfig.from_dict(value)
+        elif dataclasses.is_dataclass(default):
+            kwargs[name] = _build(type(default), value)
+        elif isinstance(value, list):
+            kwargs[name] = tuple(value)
+        else:
+            kwargs[name] = value
+    return cls(**kwargs)
+
+
+jax.tree_util.register_static(VGGTConfig)

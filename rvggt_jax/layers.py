@@ -1,0 +1,153 @@
+"""Transformer building blocks as pure functions over parameter dicts.
+
+Parameter leaves follow the converter's conventions (see `convert/rules.py`):
+Linear -> {"kernel": [in, out], "bias": [out]}; LayerNorm -> {"scale", "bias"};
+the upstream fused `qkv` Linear is split into {"q", "k", "v"} Linears;
+LayerScale -> {"gamma": [C]}.
+
+Attention tensors are token-major, `[B, N, H, D]` (the layout of
+`jax.nn.dot_product_attention`), never upstream's `[B, H, N, D]`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Params = Mapping[str, Any]
+
+# Upstream's aggregator, camera head and DPT use torch's LayerNorm default; DINOv2 uses 1e-6.
+TORCH_LN_EPS = 1e-5
+
+
+def linear(p: Params, x: jax.Array) -> jax.Array:
+    """`x @ kernel + bias`; `x` [..., in] -> [..., out]."""
+    y = jnp.matmul(x, p["kernel"])
+    if "bias" in p:
+        y = y + p["bias"]
+    return y
+
+
+def layer_norm(p: Params | None, x: jax.Array, eps: float = TORCH_LN_EPS) -> jax.Array:
+    """LayerNorm over the last axis; `p=None` is the affine-free variant."""
+    mean = jnp.mean(x, axis=-1, keepdims=True)
+    xc = x - mean
+    var = jnp.mean(xc * xc, axis=-1, keepdims=True)
+    y = xc * jax.lax.rsqrt(var + eps)
+    if p is not None:
+        y = y * p["scale"] + p["bias"]
+    return y
+
+
+def gelu(x: jax.Array) -> jax.Array:
+    """Exact (erf) GELU, as torch's nn.GELU default; the tanh form differs by ~1e-3."""
+    return jax.nn.gelu(x, approximate=False)
+
+
+def mlp(p: Params, x: jax.Array) -> jax.Array:
+    """fc1 -> GELU -> fc2."""
+    return linear(p["fc2"], gelu(linear(p["fc1"], x)))
+
+
+def layer_scale(p: Params | None, x: jax.Array) -> jax.Array:
+    return x if p is None else x * p["gamma"]
+
+
+# ---------------------------------------------------------------------------------------
+# 2D rotary position embedding
+# ---------------------------------------------------------------------------------------
+
+
+def patch_positions(h: int, w: int, num_special: int) -> np.ndarray:
+    """Integer (y, x) RoPE positions of one frame: `[num_special + h*w, 2]`.
+
+    Special tokens (camera, registers) sit at (0, 0); patch (i, j) at (i + 1, j + 1),
+    row-major, as upstream's PositionGetter + 1."""
+    yy, xx = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    grid = np.stack([yy.ravel(), xx.ravel()], axis=-1) + 1
+    return np.concatenate([np.zeros((num_special, 2), np.int32), grid.astype(np.int32)], axis=0)
+
+
+def _rope_1d(x: jax.Array, pos: jax.Array, freq: float) -> jax.Array:
+    """x [B, N, H, d], pos [B|1, N] -> rotated x (rotate-half convention)."""
+    d = x.shape[-1]
+    inv_freq = 1.0 / (freq ** (np.arange(0, d, 2, dtype=np.float32) / d))
+    angles = pos.astype(jnp.float32)[..., None] * jnp.asarray(inv_freq, jnp.float32)  # [B, N, d/2]
+    angles = jnp.concatenate([angles, angles], axis=-1)[:, :, None, :].astype(x.dtype)
+    x1, x2 = x[..., : d // 2], x[..., d // 2 :]
+    rotated = jnp.concatenate([-x2, x1], axis=-1)
+    return x * jnp.cos(angles) + rotated * jnp.sin(angles)
+
+
+def rope_2d(x: jax.Array, pos: jax.Array, freq: float) -> jax.Array:
+    """2D RoPE: the first half of the head dimension rotates with y, the second with x.
+
+    x [B, N, H, D]; pos [B|1, N, 2] integer (y, x)."""
+    d = x.shape[-1] // 2
+    return jnp.concatenate(
+        [_rope_1d(x[..., :d], pos[..., 0], freq), _rope_1d(x[..., d:], pos[..., 1], freq)], axis=-1
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# Attention
+# ---------------------------------------------------------------------------------------
+
+
+def attention(q: jax.Array, k: jax.Array, v: jax.Array, bias: jax.Array | None = None,
+              scale: float | None = None) -> jax.Array:
+    """softmax(q k^T * scale + bias) v over tokens.
+
+    q [B, Nq, H, D], k/v [B, Nk, H, D(v)], bias broadcastable to [B, H, Nq, Nk];
+    returns [B, Nq, H, Dv]. `scale` defaults to 1/sqrt(D)."""
+    scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else scale
+    logits = jnp.einsum("bqhd,bkhd->bhqk", q * jnp.asarray(scale, q.dtype), k)
+    if bias is not None:
+        logits = logits + bias
+    weights = jax.nn.softmax(logits, axis=-1)
+    return jnp.einsum("bhqk,bkhd->bqhd", weights, v)
+
+
+def qkv_heads(p: Params, x: jax.Array, num_heads: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Project x [B, N, C] to q, k, v, each [B, N, H, C/H]."""
+    b, n, c = x.shape
+
+    def heads(t):
+        return t.reshape(b, n, num_heads, c // num_heads)
+
+    return heads(linear(p["q"], x)), heads(linear(p["k"], x)), heads(linear(p["v"], x))
+
+
+def attention_qkv(p: Params, x: jax.Array, num_heads: int, pos: jax.Array | None = None,
+                  rope_freq: float | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """q, k, v [B, N, H, D] of the upstream Attention: projection, qk-norm (when the
+    params have `q_norm`), then RoPE (when `pos` is given)."""
+    q, k, v = qkv_heads(p, x, num_heads)
+    if "q_norm" in p:
+        q = layer_norm(p["q_norm"], q)
+        k = layer_norm(p["k_norm"], k)
+    if pos is not None:
+        q = rope_2d(q, pos, rope_freq)
+        k = rope_2d(k, pos, rope_freq)
+    return q, k, v
+
+
+def self_attention(p: Params, x: jax.Array, num_heads: int, pos: jax.Array | None = None,
+                   rope_freq: float | None = None) -> jax.Array:
+    """Upstream `Attention.forward`: x [B, N, C] -> [B, N, C]."""
+    b, n, c = x.shape
+    q, k, v = attention_qkv(p, x, num_heads, pos, rope_freq)
+    out = attention(q, k, v).reshape(b, n, c)
+    return linear(p["proj"], out)
+
+
+def block(p: Params, x: jax.Array, num_heads: int, pos: jax.Array | None = None,
+          rope_freq: float | None = None, eps: float = TORCH_LN_EPS) -> jax.Array:
+    """Pre-norm transformer block with LayerScale: x [B, N, C] -> [B, N, C]."""
+    x = x + layer_scale(p.get("ls1"), self_attention(p["attn"], layer_norm(p["norm1"], x, eps),
+                                                      num_heads, pos, rope_freq))
+    return x + layer_scale(p.get("ls2"), mlp(p["mlp"], layer_norm(p["norm2"], x, eps)))

@@ -1,0 +1,139 @@
+"""`rvggt_forward`: the whole VGGT forward pass (aggregator + heads) as one pure function.
+
+    out = jax.jit(rvggt_forward)(params, images, config)
+
+`config` is a static pytree node, so plain `jax.jit` compiles once per
+(input shape, config); `static_argnames="config"` works too.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax.aggregator import aggregator_forward
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.heads.camera import camera_head
+from rvggt_jax.heads.dpt import dpt_head
+from rvggt_jax.layers import Params
+
+
+class InputError(ValueError):
+    """Images or query points the model cannot take."""
+
+
+def _is_float(x: Any) -> bool:
+    return jnp.issubdtype(jnp.result_type(x), jnp.floating)
+
+
+def check_images(images: Any, config: VGGTConfig) -> jax.Array:
+    """Validate and batch images: [S, 3, H, W] or [B, S, 3, H, W] float in [0, 1] ->
+    [B, S, 3, H, W]. Only static facts (rank, shape, dtype) are checked, so this also
+    works on tracers under jit."""
+    shape = tuple(np.shape(images))
+    if len(shape) not in (4, 5):
+        raise InputError(f"images must be [S,3,H,W] or [B,S,3,H,W]; got rank {len(shape)} shape {shape}")
+    if not _is_float(images):
+        raise InputError(
+            f"images must be a float array in [0, 1]; got dtype {jnp.result_type(images)} "
+            "(divide uint8 images by 255)"
+        )
+    if len(shape) == 4:
+        images = images[None]
+        shape = (1,) + shape
+    b, s, c, h, w = shape
+    if c != 3:
+        raise InputError(f"images must have 3 (RGB) channels in axis -3; got {c} (shape {shape})")
+    ps = config.patch_size
+    if h % ps or w % ps:
+        raise InputError(f"image height and width must be multiples of the patch size {ps}; got {h} x {w}")
+    if min(b, s, h, w) == 0:
+        raise InputError(f"images has an empty axis: shape {shape}")
+    return jnp.asarray(images, jnp.float32)
+
+
+def check_query_points(query_points: Any, batch: int) -> jax.Array:
+    """[N, 2] or [B, N, 2] pixel (x, y) in frame 0 -> [B, N, 2] float32."""
+    shape = tuple(np.shape(query_points))
+    if len(shape) not in (2, 3) or shape[-1] != 2:
+        raise InputError(f"query_points must be [N,2] or [B,N,2] pixel (x, y); got shape {shape}")
+    if not _is_float(query_points):
+        raise InputError(f"query_points must be float pixel coordinates; got dtype {jnp.result_type(query_points)}")
+    if len(shape) == 2:
+        query_points = query_points[None]
+        shape = (1,) + shape
+    if shape[0] != batch:
+        if shape[0] != 1:
+            raise InputError(f"query_points batch {shape[0]} does not match images batch {batch}")
+        query_points = jnp.broadcast_to(query_points, (batch,) + shape[1:])
+    return jnp.asarray(query_points, jnp.float32)
+
+
+def check_params(params: Params, config: VGGTConfig) -> None:
+    """Catch a config that does not describe these params before shapes fail deep inside."""
+    try:
+        width = params["aggregator"]["camera_token"].shape[-1]
+    except (KeyError, TypeError) as e:
+        raise InputError("params are not a converted VGGT tree (no aggregator.camera_token)") from e
+    if width != config.embed_dim:
+        raise InputError(f"params have embed_dim {width} but config says {config.embed_dim}")
+
+
+def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
+                  query_points: jax.Array | None = None) -> dict[str, Any]:
+    """VGGT forward pass.
+
+    images: [B, S, 3, H, W] or [S, 3, H, W], float in [0, 1], H and W multiples of 14.
+    query_points: optional [B, N, 2] or [N, 2] pixel (x, y) in frame 0 (needs the track head).
+
+    Returns (B is added when the input had none), as upstream:
+      pose_enc [B,S,9], pose_enc_list (list of [B,S,9], one per camera-head iteration),
+      depth [B,S,H,W,1], depth_conf [B,S,H,W], world_points [B,S,H,W,3],
+      world_points_conf [B,S,H,W], images [B,S,3,H,W];
+      with query points: track [B,S,N,2], vis [B,S,N], conf [B,S,N];
+      on request (config.with_outputs): saliency [B,S,h*w], patch_tokens [B*S,h*w,C],
+      aggregated_XX [B,S,P,2C].
+    """
+    config.validate()
+    check_params(params, config)
+    images = check_images(images, config)
+    b, s, _, hh, ww = images.shape
+    with_track = query_points is not None
+    if with_track:
+        if not config.enable_track or "track_head" not in params:
+            raise InputError("query_points given but this model has no track head")
+        query_points = check_query_points(query_points, b)
+
+    keep = set(config.needed_layers(with_track)) | set(config.return_layers)
+    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep)
+    psi = config.patch_start_idx
+
+    out: dict[str, Any] = {}
+    if config.enable_camera:
+        pose_enc_list = camera_head(params["camera_head"], agg[config.depth - 1], config.camera_head)
+        out["pose_enc"] = pose_enc_list[-1]
+        out["pose_enc_list"] = pose_enc_list
+    if config.enable_depth:
+        out["depth"], out["depth_conf"] = dpt_head(
+            params["depth_head"], agg, images, psi, config, activation="exp", conf_activation="expp1")
+    if config.enable_point:
+        out["world_points"], out["world_points_conf"] = dpt_head(
+            params["point_head"], agg, images, psi, config, activation="inv_log", conf_activation="expp1")
+    if with_track:
+        from rvggt_jax.heads.track import track_head
+
+        tracks, vis, conf = track_head(params["track_head"], agg, images, psi, query_points, config)
+        out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
+    out["images"] = images
+    if config.return_saliency:
+        out["saliency"], out["patch_tokens"] = saliency, patch_tokens
+    for i in config.return_layers:
+        out[f"aggregated_{i:02d}"] = agg[i]
+
+    if "depth" in out:
+        chex.assert_shape(out["depth"], (b, s, hh, ww, 1))
+    return out

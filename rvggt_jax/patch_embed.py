@@ -1,0 +1,154 @@
+"""DINOv2 ViT/14 with registers: the patch embed of VGGT, and the [CLS] saliency Psi.
+
+Psi (the RegimeVGGT saliency) is the [CLS] query's attention row in the last DINO block,
+softmax with the 1/sqrt(d) scale, averaged over heads, patch entries only. It is read
+off the q and k that block computes anyway.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax import layers
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.layers import Params
+
+# ImageNet statistics that upstream's aggregator normalises with before the patch embed.
+RESNET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+RESNET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+
+
+# ---------------------------------------------------------------------------------------
+# Position-embedding interpolation, equal to torch's antialiased bicubic.
+# jax.image.resize uses the Keys kernel a=-0.5 *without* torch's support/normalisation
+# rules and another kernel when not antialiasing, so we build torch's weight matrix.
+# Shapes are static, so the matrices are numpy constants folded into the program.
+# ---------------------------------------------------------------------------------------
+
+
+def _cubic(x: np.ndarray, a: float) -> np.ndarray:
+    x = np.abs(x)
+    near = ((a + 2) * x - (a + 3)) * x * x + 1
+    far = (((x - 5) * x + 8) * x - 4) * a
+    return np.where(x < 1, near, np.where(x < 2, far, 0.0))
+
+
+@functools.lru_cache(maxsize=64)
+def bicubic_aa_matrix(in_size: int, out_size: int, scale: float | None = None) -> np.ndarray:
+    """[out_size, in_size] weights of torch's `interpolate(mode="bicubic", antialias=True,
+    align_corners=False)` along one axis. `scale` is input/output (defaults to the size
+    ratio; torch passes 1/scale_factor when a scale factor is given)."""
+    if in_size == out_size:
+        # torch skips the pass along an axis whose size does not change, even when a
+        # scale factor (interpolate_offset) would shift the sampling points.
+        return np.eye(in_size, dtype=np.float32)
+    scale = in_size / out_size if scale is None else scale
+    # torch's antialiased kernels use the PIL cubic (a = -0.5) and widen it when shrinking.
+    support = 2.0 * scale if scale >= 1.0 else 2.0
+    inv = 1.0 / scale if scale >= 1.0 else 1.0
+    m = np.zeros((out_size, in_size), np.float64)
+    for i in range(out_size):
+        center = scale * (i + 0.5)
+        lo = max(int(center - support + 0.5), 0)
+        hi = min(int(center + support + 0.5), in_size)
+        j = np.arange(lo, hi)
+        w = _cubic((j - center + 0.5) * inv, -0.5)
+        m[i, lo:hi] = w / w.sum()
+    return m.astype(np.float32)
+
+
+def interpolate_pos_embed(pos_embed: jax.Array, h: int, w: int, offset: float = 0.0) -> jax.Array:
+    """Resize the DINO position table to an h x w patch grid.
+
+    pos_embed [1, 1 + M*M, C] -> [1, 1 + h*w, C] (class entry untouched)."""
+    n = pos_embed.shape[1] - 1
+    m = int(math.isqrt(n))
+    if m * m != n:
+        raise ValueError(f"pos_embed holds {n} patch entries, not a square grid")
+    if h == m and w == m:
+        return pos_embed
+    cls_pos, grid = pos_embed[:, :1], pos_embed[0, 1:].reshape(m, m, -1)
+    if offset:
+        # upstream passes a scale factor (h + offset) / M, which torch turns back into a scale
+        ry = bicubic_aa_matrix(m, h, m / (h + offset))
+        rx = bicubic_aa_matrix(m, w, m / (w + offset))
+    else:
+        ry, rx = bicubic_aa_matrix(m, h), bicubic_aa_matrix(m, w)
+    hp = jax.lax.Precision.HIGHEST
+    grid = jnp.einsum("ym,mnc->ync", ry, grid, precision=hp)
+    grid = jnp.einsum("xn,ync->yxc", rx, grid, precision=hp)
+    return jnp.concatenate([cls_pos, grid.reshape(1, h * w, -1)], axis=1)
+
+
+# ---------------------------------------------------------------------------------------
+# The ViT
+# ---------------------------------------------------------------------------------------
+
+
+def patchify(p: Params, images: jax.Array, patch: int) -> jax.Array:
+    """The stride-`patch` convolution as a matmul: images [N, 3, H, W] -> [N, h*w, C]."""
+    n, c, hh, ww = images.shape
+    h, w = hh // patch, ww // patch
+    x = images.reshape(n, c, h, patch, w, patch).transpose(0, 2, 4, 3, 5, 1)
+    x = x.reshape(n, h * w, patch * patch * c)
+    kernel = p["kernel"].reshape(patch * patch * c, -1)  # HWIO flattens in the same order
+    return x @ kernel + p["bias"]
+
+
+def cls_saliency(q: jax.Array, k: jax.Array, num_prefix: int) -> jax.Array:
+    """Psi: softmax of the [CLS] query (token 0) over all keys, head-averaged, patch
+    entries only. q, k [N, L, H, D] -> [N, L - num_prefix]."""
+    scale = 1.0 / math.sqrt(q.shape[-1])
+    logits = jnp.einsum("nhd,nkhd->nhk", q[:, 0] * scale, k)
+    return jax.nn.softmax(logits, axis=-1).mean(axis=1)[:, num_prefix:]
+
+
+def dino_forward(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
+    """DINOv2 forward on normalised images.
+
+    images [N, 3, H, W] -> (x_norm_patchtokens [N, h*w, C], saliency Psi [N, h*w])."""
+    dino = config.dino
+    ps = config.patch_size
+    n, _, hh, ww = images.shape
+    h, w = hh // ps, ww // ps
+    eps = dino.layer_norm_eps
+
+    x = patchify(p["patch_embed"]["proj"], images, ps)
+    cls = jnp.broadcast_to(p["cls_token"], (n, 1, x.shape[-1]))
+    x = jnp.concatenate([cls, x], axis=1)
+    x = x + interpolate_pos_embed(p["pos_embed"], h, w, dino.interpolate_offset)
+    regs = jnp.broadcast_to(p["register_tokens"], (n,) + p["register_tokens"].shape[1:])
+    x = jnp.concatenate([x[:, :1], regs, x[:, 1:]], axis=1)
+    num_prefix = 1 + regs.shape[1]
+
+    depth = dino.depth
+    for i in range(depth - 1):
+        x = layers.block(p["blocks"][str(i)], x, dino.num_heads, eps=eps)
+
+    # The last block is unrolled so that its q and k also give the saliency.
+    blk = p["blocks"][str(depth - 1)]
+    hidden = layers.layer_norm(blk["norm1"], x, eps)
+    q, k, v = layers.attention_qkv(blk["attn"], hidden, dino.num_heads)
+    saliency = cls_saliency(q, k, num_prefix)
+    attn = layers.linear(blk["attn"]["proj"], layers.attention(q, k, v).reshape(x.shape))
+    x = x + layers.layer_scale(blk.get("ls1"), attn)
+    x = x + layers.layer_scale(blk.get("ls2"), layers.mlp(blk["mlp"], layers.layer_norm(blk["norm2"], x, eps)))
+
+    tokens = layers.layer_norm(p["norm"], x, eps)[:, num_prefix:]
+    chex.assert_shape(tokens, (n, h * w, config.embed_dim))
+    chex.assert_shape(saliency, (n, h * w))
+    return tokens, saliency
+
+
+def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
+    """images [B, S, 3, H, W] in [0, 1] -> (patch tokens [B*S, h*w, C], Psi [B, S, h*w])."""
+    b, s, c, hh, ww = images.shape
+    x = (images - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
+    tokens, saliency = dino_forward(p, x.reshape(b * s, c, hh, ww), config)
+    return tokens, saliency.reshape(b, s, -1)
