@@ -18,7 +18,8 @@ import numpy as np
 from rvggt_jax.aggregator import aggregator_forward
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.heads.camera import camera_head
-from rvggt_jax.heads.dpt import dpt_head
+from rvggt_jax.heads.dpt import depth_head, point_head
+from rvggt_jax.heads.track import track_head
 from rvggt_jax.layers import Params
 
 
@@ -118,14 +119,10 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
     if config.enable_depth:
-        out["depth"], out["depth_conf"] = dpt_head(
-            params["depth_head"], agg, images, psi, config, activation="exp", conf_activation="expp1")
+        out["depth"], out["depth_conf"] = depth_head(params["depth_head"], agg, (hh, ww), config)
     if config.enable_point:
-        out["world_points"], out["world_points_conf"] = dpt_head(
-            params["point_head"], agg, images, psi, config, activation="inv_log", conf_activation="expp1")
+        out["world_points"], out["world_points_conf"] = point_head(params["point_head"], agg, (hh, ww), config)
     if with_track:
-        from rvggt_jax.heads.track import track_head
-
         tracks, vis, conf = track_head(params["track_head"], agg, images, psi, query_points, config)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
     out["images"] = images

@@ -71,12 +71,21 @@ def test_unbatched_input_gets_a_batch_axis(tiny, golden):
 def test_one_compilation_per_input_shape(tiny, golden):
     params, config = tiny
     images = golden["images"][:, :2]
-    for fwd in (jax.jit(rvggt_forward), jax.jit(rvggt_forward, static_argnames="config")):
+    for static in (None, "config"):
+        traces = []
+
+        def forward(p, x, config):  # a fresh function per variant: jit caches are per function
+            traces.append(x.shape)
+            return rvggt_forward(p, x, config)
+
+        fwd = jax.jit(forward, static_argnames=static)
         a = fwd(params, images, config)
         b = fwd(params, 1.0 - images, config)
         jax.block_until_ready((a, b))
-        assert fwd._cache_size() == 1
+        assert len(traces) == 1 and fwd._cache_size() == 1
         assert not np.allclose(a["depth"], b["depth"])  # really ran on the new images
+        fwd(params, images[:, :1], config)  # a new shape is a new compilation
+        assert len(traces) == 2
 
 
 def test_keeps_only_the_layers_the_heads_read(tiny, golden):
@@ -94,7 +103,7 @@ def test_keeps_only_the_layers_the_heads_read(tiny, golden):
     "shape, dtype, message",
     [
         ((2, 3, 28), np.float32, "rank"),
-        ((1, 2, 4, 28, 28), np.float32, "3 (RGB) channels"),
+        ((1, 2, 4, 28, 28), np.float32, r"3 \(RGB\) channels"),
         ((1, 2, 3, 30, 28), np.float32, "multiples of the patch size 14"),
         ((1, 2, 3, 28, 29), np.float32, "multiples of the patch size 14"),
         ((1, 2, 3, 28, 28), np.uint8, "float"),

@@ -1,0 +1,48 @@
+"""Input images and output files.
+
+- `load_images(paths, mode)`: preprocessing identical to upstream VGGT's
+  `load_and_preprocess_images` -> float32 [S, 3, H, W]; `load_images_with_info` also
+  returns where each image's pixels went (`ImageInfo`); `find_images(folder)`.
+- `export_reconstruction(...)` and the single writers (PLY, COLMAP text model,
+  cameras.json, 16-bit depth PNGs, trajectory plot) with readers for checking.
+"""
+
+from rvggt_jax.io.export import (
+    export_reconstruction,
+    read_colmap_text,
+    read_depth_png,
+    read_ply,
+    write_cameras_json,
+    write_colmap_text,
+    write_depth_pngs,
+    write_ply,
+    write_trajectory_png,
+)
+from rvggt_jax.io.images import (
+    IMAGE_EXTENSIONS,
+    ImageInfo,
+    ImageLoadError,
+    find_images,
+    load_images,
+    load_images_with_info,
+    preprocessed_size,
+)
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "ImageInfo",
+    "ImageLoadError",
+    "export_reconstruction",
+    "find_images",
+    "load_images",
+    "load_images_with_info",
+    "preprocessed_size",
+    "read_colmap_text",
+    "read_depth_png",
+    "read_ply",
+    "write_cameras_json",
+    "write_colmap_text",
+    "write_depth_pngs",
+    "write_ply",
+    "write_trajectory_png",
+]

@@ -1,0 +1,241 @@
+"""Image loading and preprocessing, numerically identical to upstream VGGT.
+
+`load_images(paths, mode)` reproduces `vggt.utils.load_fn.load_and_preprocess_images`
+to the last bit (the same Pillow BICUBIC resize, the same `uint8 / 255` float32
+conversion, the same rounding of sizes to multiples of the 14-pixel patch, the same
+white padding), without torch.
+
+`load_images_with_info` also returns, per image, where its pixels went
+(`ImageInfo`): the original size and the affine map from original pixel coordinates
+to network-input pixel coordinates, used to express the predicted intrinsics in the
+original image's pixels and to tell padding from image content.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "ImageInfo",
+    "ImageLoadError",
+    "TARGET_SIZE",
+    "find_images",
+    "load_images",
+    "load_images_with_info",
+    "preprocessed_size",
+]
+
+TARGET_SIZE = 518
+"""Upstream's fixed network resolution: the width (crop) or the longest side (pad)."""
+
+PATCH = 14
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".gif", ".ppm", ".pgm")
+"""File name endings (case-insensitive) `find_images` treats as images."""
+
+_MODES = ("crop", "pad")
+
+
+class ImageLoadError(ValueError):
+    """An image could not be read or decoded; the message names the file."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageInfo:
+    """Where one image's pixels ended up in the preprocessed batch.
+
+    Pixel coordinates are continuous (the image spans `[0, width] x [0, height]`):
+    a point `(u, v)` of the original image lands at `(sx*u + ox, sy*v + oy)` of the
+    network input. `valid` is the box `(x0, y0, x1, y1)` (integers, end exclusive) of
+    the network input covered by image content; outside it is white padding.
+    """
+
+    path: str
+    name: str
+    width: int
+    height: int
+    sx: float
+    sy: float
+    ox: float
+    oy: float
+    valid: tuple[int, int, int, int]
+
+    def intrinsic_to_original(self, intrinsic: np.ndarray) -> np.ndarray:
+        """A pinhole matrix `[3, 3]` in network-input pixels -> the same camera in
+        original-image pixels (inverse of the affine pixel map)."""
+        k = np.array(intrinsic, dtype=np.float64, copy=True)
+        k[0, :] = (k[0, :] - self.ox * k[2, :]) / self.sx
+        k[1, :] = (k[1, :] - self.oy * k[2, :]) / self.sy
+        return k
+
+    def valid_mask(self, height: int, width: int) -> np.ndarray:
+        """Boolean `[height, width]` mask of network-input pixels that hold image content."""
+        m = np.zeros((height, width), dtype=bool)
+        x0, y0, x1, y1 = self.valid
+        m[y0:y1, x0:x1] = True
+        return m
+
+
+def preprocessed_size(width: int, height: int, mode: str = "crop") -> tuple[int, int]:
+    """`(new_width, new_height)` upstream resizes a `width x height` image to (before
+    cropping / padding). Python's `round` (half to even) as upstream."""
+    _check_mode(mode)
+    if mode == "pad" and height > width:
+        new_height = TARGET_SIZE
+        new_width = round(width * (new_height / height) / PATCH) * PATCH
+    else:
+        new_width = TARGET_SIZE
+        new_height = round(height * (new_width / width) / PATCH) * PATCH
+    if new_width <= 0 or new_height <= 0:
+        raise ValueError(f"image of {width}x{height} pixels is too thin to resize to {TARGET_SIZE} pixels")
+    return new_width, new_height
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in _MODES:
+        raise ValueError(f"mode must be 'crop' or 'pad', got {mode!r}")
+
+
+def _open_rgb(path: str) -> Image.Image:
+    """Open, decode fully, blend RGBA on white and convert to RGB (upstream's steps)."""
+    try:
+        with Image.open(path) as img:
+            img.load()
+            if img.mode == "RGBA":
+                background = Image.new("RGBA", img.size, (255, 255, 255, 255))
+                img = Image.alpha_composite(background, img)
+            return img.convert("RGB")
+    except FileNotFoundError:
+        raise ImageLoadError(f"image not found: {path}") from None
+    except IsADirectoryError:
+        raise ImageLoadError(f"not an image file (a directory): {path}") from None
+    except UnidentifiedImageError:
+        raise ImageLoadError(f"cannot read image {path}: not a recognised image format (corrupt or not an image)") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        raise ImageLoadError(f"cannot read image {path}: {e}") from None
+
+
+def _pad_white(img: np.ndarray, top: int, bottom: int, left: int, right: int) -> np.ndarray:
+    """`[3, H, W]` -> `[3, H+top+bottom, W+left+right]`, new pixels = 1.0."""
+    return np.pad(img, ((0, 0), (top, bottom), (left, right)), mode="constant", constant_values=1.0)
+
+
+def load_images_with_info(
+    paths: Sequence[str | os.PathLike],
+    mode: str = "crop",
+    progress: Callable[[Iterable], Iterable] | None = None,
+) -> tuple[np.ndarray, list[ImageInfo]]:
+    """Load and preprocess images as upstream's `load_and_preprocess_images`.
+
+    Args:
+      paths: image files, in the order of the frames.
+      mode: "crop" (width 518, height rounded to a multiple of 14 and centre-cropped to
+        at most 518) or "pad" (longest side 518, the other rounded to a multiple of 14,
+        white-padded to 518 x 518).
+      progress: optional wrapper of the path iterable (e.g. `tqdm`).
+
+    Returns:
+      images `[S, 3, H, W]` float32 in [0, 1]; images of different sizes are
+      centre-padded with white (1.0) to the largest height and width, and
+      per-image `ImageInfo`.
+
+    Raises:
+      ValueError: empty `paths` or a bad `mode`.
+      ImageLoadError: a file that cannot be read (the message names it).
+    """
+    paths = [os.fspath(p) for p in paths]
+    if len(paths) == 0:
+        raise ValueError("at least 1 image is required")
+    _check_mode(mode)
+
+    arrays: list[np.ndarray] = []
+    infos: list[dict] = []
+    it = progress(paths) if progress is not None else paths
+    for path in it:
+        img = _open_rgb(path)
+        width, height = img.size
+        try:
+            new_width, new_height = preprocessed_size(width, height, mode)
+        except ValueError as e:
+            raise ImageLoadError(f"cannot use image {path}: {e}") from None
+        img = img.resize((new_width, new_height), Image.Resampling.BICUBIC)
+        # Upstream's ToTensor: uint8 -> float32, divided by 255 in float32.
+        arr = np.asarray(img, dtype=np.uint8).transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
+        sx, sy = new_width / width, new_height / height
+        ox = oy = 0.0
+        if mode == "crop" and new_height > TARGET_SIZE:
+            start_y = (new_height - TARGET_SIZE) // 2
+            arr = arr[:, start_y : start_y + TARGET_SIZE, :]
+            oy -= start_y
+        content = (arr.shape[2], arr.shape[1])
+        if mode == "pad":
+            h_pad = TARGET_SIZE - arr.shape[1]
+            w_pad = TARGET_SIZE - arr.shape[2]
+            if h_pad > 0 or w_pad > 0:
+                top, left = h_pad // 2, w_pad // 2
+                arr = _pad_white(arr, top, h_pad - top, left, w_pad - left)
+                ox += left
+                oy += top
+        arrays.append(arr)
+        infos.append(dict(path=path, name=os.path.basename(path), width=width, height=height, sx=sx, sy=sy, ox=ox, oy=oy,
+                          content=content))
+
+    shapes = {a.shape[1:] for a in arrays}
+    if len(shapes) > 1:
+        max_h = max(s[0] for s in shapes)
+        max_w = max(s[1] for s in shapes)
+        for i, arr in enumerate(arrays):
+            h_pad = max_h - arr.shape[1]
+            w_pad = max_w - arr.shape[2]
+            if h_pad > 0 or w_pad > 0:
+                top, left = h_pad // 2, w_pad // 2
+                arrays[i] = _pad_white(arr, top, h_pad - top, left, w_pad - left)
+                infos[i]["ox"] += left
+                infos[i]["oy"] += top
+    images = np.stack(arrays).astype(np.float32, copy=False)
+    H, W = images.shape[2:]
+
+    out_infos = []
+    for d in infos:
+        cw, ch = d.pop("content")
+        # the content's top-left corner moved only by padding (the crop offset is < 0 only
+        # in crop mode, where no per-image padding happens)
+        x0, y0 = int(round(max(d["ox"], 0.0))), int(round(max(d["oy"], 0.0)))
+        out_infos.append(ImageInfo(valid=(x0, y0, min(W, x0 + cw), min(H, y0 + ch)), **d))
+    return images, out_infos
+
+
+def load_images(paths: Sequence[str | os.PathLike], mode: str = "crop") -> np.ndarray:
+    """Images `[S, 3, H, W]` float32 in [0, 1], equal to upstream's
+    `load_and_preprocess_images(paths, mode)`; see `load_images_with_info`."""
+    return load_images_with_info(paths, mode)[0]
+
+
+def find_images(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
+    """Image files directly inside `folder` sorted by name, and the other entries skipped.
+
+    Image files are recognised by their extension (`IMAGE_EXTENSIONS`,
+    case-insensitive); hidden files and sub-folders are skipped.
+
+    Raises:
+      FileNotFoundError / NotADirectoryError: `folder` is missing or not a folder.
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        raise FileNotFoundError(f"image folder not found: {folder}")
+    if not folder.is_dir():
+        raise NotADirectoryError(f"not a folder: {folder}")
+    images, skipped = [], []
+    for p in sorted(folder.iterdir(), key=lambda q: q.name):
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS:
+            images.append(p)
+        else:
+            skipped.append(p)
+    return images, skipped
