@@ -61,11 +61,6 @@ def aggregator_forward(
     return outputs, patch_tokens, saliency
 
 
-def stack_blocks(blocks: Params, indices: Iterable[int]) -> Params:
-    """Stack the param trees of numbered blocks along a new leading axis (for lax.scan)."""
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *[blocks[str(i)] for i in indices])
-
-
 def _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, keep):
     """All layers in one `lax.scan`: one compiled block body instead of 2 * depth, which
     cuts compile time ~10x. The kept layers' outputs go to a [K, B, S, P, 2C] buffer."""
@@ -73,7 +68,7 @@ def _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, keep):
     slot = np.full(config.depth, -1, np.int32)
     slot[keep] = np.arange(len(keep))
     layer_ids = range(config.depth)
-    xs = (stack_blocks(p["frame_blocks"], layer_ids), stack_blocks(p["global_blocks"], layer_ids), jnp.asarray(slot))
+    xs = (layers.stack_blocks(p["frame_blocks"], layer_ids), layers.stack_blocks(p["global_blocks"], layer_ids), jnp.asarray(slot))
 
     def layer(carry, xs_i):
         x, kept = carry

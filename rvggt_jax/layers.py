@@ -98,18 +98,43 @@ def rope_2d(x: jax.Array, pos: jax.Array, freq: float) -> jax.Array:
 # ---------------------------------------------------------------------------------------
 
 
+# Query rows per attention chunk on CPU: the [H, chunk, Nk] logits block stays in cache,
+# which on a 2-core CPU runs ~3x faster than materialising all [H, Nq, Nk] logits.
+QUERY_CHUNK = 256
+
+
+def _softmax_attend(q: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | None) -> jax.Array:
+    """q [B, H, n, D] (pre-scaled), kt [B, H, D, Nk], v [B, H, Nk, Dv] -> [B, H, n, Dv].
+    Normalises after the value product: n*Dv divisions instead of n*Nk."""
+    logits = q @ kt
+    if bias is not None:
+        logits = logits + bias
+    e = jnp.exp(logits - jax.lax.stop_gradient(logits.max(axis=-1, keepdims=True)))
+    return (e @ v) / e.sum(axis=-1, keepdims=True)
+
+
 def attention(q: jax.Array, k: jax.Array, v: jax.Array, bias: jax.Array | None = None,
-              scale: float | None = None) -> jax.Array:
+              scale: float | None = None, chunk: int = QUERY_CHUNK) -> jax.Array:
     """softmax(q k^T * scale + bias) v over tokens.
 
     q [B, Nq, H, D], k/v [B, Nk, H, D(v)], bias broadcastable to [B, H, Nq, Nk];
-    returns [B, Nq, H, Dv]. `scale` defaults to 1/sqrt(D)."""
+    returns [B, Nq, H, Dv]. `scale` defaults to 1/sqrt(D). Long query sets are processed
+    `chunk` rows at a time (a bias with a query axis disables chunking)."""
     scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else scale
-    logits = jnp.einsum("bqhd,bkhd->bhqk", q * jnp.asarray(scale, q.dtype), k)
-    if bias is not None:
-        logits = logits + bias
-    weights = jax.nn.softmax(logits, axis=-1)
-    return jnp.einsum("bhqk,bkhd->bqhd", weights, v)
+    b, nq, h, d = q.shape
+    qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)
+    kt = k.transpose(0, 2, 3, 1)
+    vt = v.transpose(0, 2, 1, 3)
+    per_query_bias = bias is not None and bias.ndim >= 2 and bias.shape[-2] != 1
+    if nq <= chunk or per_query_bias:
+        out = _softmax_attend(qt, kt, vt, bias)
+    else:
+        pad = -nq % chunk
+        qc = jnp.pad(qt, ((0, 0), (0, 0), (0, pad), (0, 0)))
+        qc = qc.reshape(b, h, (nq + pad) // chunk, chunk, d).transpose(2, 0, 1, 3, 4)
+        out = jax.lax.map(lambda rows: _softmax_attend(rows, kt, vt, bias), qc)
+        out = out.transpose(1, 2, 0, 3, 4).reshape(b, h, nq + pad, -1)[:, :, :nq]
+    return out.transpose(0, 2, 1, 3)
 
 
 def qkv_heads(p: Params, x: jax.Array, num_heads: int) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -151,3 +176,18 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: jax.Array | None = None,
     x = x + layer_scale(p.get("ls1"), self_attention(p["attn"], layer_norm(p["norm1"], x, eps),
                                                       num_heads, pos, rope_freq))
     return x + layer_scale(p.get("ls2"), mlp(p["mlp"], layer_norm(p["norm2"], x, eps)))
+
+
+def stack_blocks(blocks: Params, indices) -> Params:
+    """Stack the param trees of numbered blocks ({"0": ..., "1": ...}) along a new leading
+    axis, for `lax.scan`: one compiled body instead of one per block."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *[blocks[str(i)] for i in indices])
+
+
+def block_stack(p_stacked: Params, x: jax.Array, num_heads: int, pos: jax.Array | None = None,
+                rope_freq: float | None = None, eps: float = TORCH_LN_EPS) -> jax.Array:
+    """Apply stacked blocks (leading axis = block) in order with `lax.scan`."""
+    def step(h, p):
+        return block(p, h, num_heads, pos, rope_freq, eps), None
+
+    return jax.lax.scan(step, x, p_stacked)[0]

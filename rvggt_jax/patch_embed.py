@@ -128,8 +128,8 @@ def dino_forward(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.
     num_prefix = 1 + regs.shape[1]
 
     depth = dino.depth
-    for i in range(depth - 1):
-        x = layers.block(p["blocks"][str(i)], x, dino.num_heads, eps=eps)
+    if depth > 1:
+        x = layers.block_stack(layers.stack_blocks(p["blocks"], range(depth - 1)), x, dino.num_heads, eps=eps)
 
     # The last block is unrolled so that its q and k also give the saliency.
     blk = p["blocks"][str(depth - 1)]

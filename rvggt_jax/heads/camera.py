@@ -54,9 +54,7 @@ def inverse_log_transform(y: jax.Array) -> jax.Array:
 
 def _trunk(params: Params, x: jax.Array, num_heads: int) -> jax.Array:
     """The trunk attends across the S frames of each batch element: x [B, S, C]."""
-    for i in range(len(params)):
-        x = layers.block(params[str(i)], x, num_heads)
-    return x
+    return layers.block_stack(layers.stack_blocks(params, range(len(params))), x, num_heads)
 
 
 def _refine(params: Params, tokens: jax.Array, raw_pose: jax.Array, num_heads: int) -> jax.Array:
@@ -80,13 +78,17 @@ def camera_head(params: Params, aggregated_last: jax.Array, config: CameraHeadCo
     b, s = aggregated_last.shape[:2]
     tokens = layers.layer_norm(params["token_norm"], aggregated_last[:, :, 0])
 
-    raw = jnp.broadcast_to(params["empty_pose_tokens"], (b, s, params["empty_pose_tokens"].shape[-1]))
-    outputs = []
-    for it in range(config.iters):
-        delta = _refine(params, tokens, raw, config.num_heads)
-        # From the second iteration on, the input encoding is the running sum, with no
-        # gradient through earlier iterations (upstream's detach).
-        raw = delta if it == 0 else jax.lax.stop_gradient(raw) + delta
-        outputs.append(activate_pose(raw, config.trans_act, config.quat_act, config.fl_act))
+    empty = jnp.broadcast_to(params["empty_pose_tokens"], (b, s, params["empty_pose_tokens"].shape[-1]))
+
+    def iteration(carry, _):
+        pose_in, total = carry
+        # The first iteration's encoding is its delta alone; later ones add to the running
+        # sum (upstream detaches it: no gradient through earlier iterations).
+        raw = jax.lax.stop_gradient(total) + _refine(params, tokens, pose_in, config.num_heads)
+        return (raw, raw), activate_pose(raw, config.trans_act, config.quat_act, config.fl_act)
+
+    # scanned: one compiled refinement step instead of `iters`
+    _, stacked = jax.lax.scan(iteration, (empty, jnp.zeros_like(empty)), None, length=config.iters)
+    outputs = list(stacked)
     chex.assert_shape(outputs, (b, s, 9))
     return outputs
