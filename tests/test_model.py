@@ -53,7 +53,14 @@ def test_dense_heads(outputs, golden, key):
 
 @pytest.mark.parametrize("key", ["track", "vis", "conf"])
 def test_track_head(outputs, golden, key):
-    assert rel_err(outputs[key], golden[key]) <= TOL
+    # The tracker's flow embedding (sin/cos up to ~1000 rad per pixel) amplifies float32
+    # rounding ~1000x per refinement step: upstream itself moves by up to 3e-3 (track),
+    # 4e-2 (vis), 1e-2 (conf) under 1e-7 input noise or another torch thread count.
+    # Early iterations are checked at 1e-4 in test_track_head.py; the last one here at
+    # about twice upstream's own spread.
+    from test_track_head import FINAL_ITER_RTOL
+
+    assert rel_err(outputs[key], golden[key]) <= FINAL_ITER_RTOL[key]
 
 
 def test_unbatched_input_gets_a_batch_axis(tiny, golden):

@@ -1,0 +1,56 @@
+"""VGGT track head: a feature-only DPT (down ratio 2, no positional embedding) followed by
+the iterative point tracker of `rvggt_jax.heads.tracker`.
+
+Parameters are the `track_head` subtree of the converted state dict: `feature_extractor`
+(DPT layout, see `rvggt_jax.heads.dpt`) and `tracker` (see `rvggt_jax.heads.tracker`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import jax
+
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.heads.dpt import Aggregated, dpt_features
+from rvggt_jax.heads.tracker import track_predictor
+
+Params = Mapping[str, Any]
+
+# Upstream TrackHead builds its DPT extractor with these fixed settings.
+FEATURE_DOWN_RATIO = 2
+
+
+def track_features(params: Params, aggregated: Aggregated, images: jax.Array, patch_start_idx: int,
+                   config: VGGTConfig) -> jax.Array:
+    """The track head's DPT feature maps: [B, S, H/2, W/2, features] (NHWC), with H, W the
+    image size rounded down to multiples of the patch size."""
+    return dpt_features(params["feature_extractor"], aggregated, tuple(images.shape[-2:]), patch_start_idx,
+                        layer_idx=config.track_layer_idx, patch_size=config.patch_size,
+                        down_ratio=FEATURE_DOWN_RATIO, pos_embed=False)
+
+
+def track_head(params: Params, aggregated: Aggregated, images: jax.Array, patch_start_idx: int,
+               query_points: jax.Array, config: VGGTConfig, iters: int | None = None
+               ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+    """Upstream `TrackHead.forward`.
+
+    params: the `track_head` subtree. aggregated: aggregator outputs, each [B, S, P, 2E]
+    (a list of every layer, or a dict {layer index: tokens} holding at least
+    `config.track_layer_idx`). images [B, S, 3, H, W] (only its shape is read).
+    patch_start_idx: a Python int (first patch token in P). query_points [B, N, 2]: pixel
+    (x, y) in frame 0; an unbatched [N, 2] array is rejected, as by upstream's head
+    (the full model adds the batch axis before calling it). iters: refinement iterations,
+    default `config.track_head.iters`.
+
+    Returns (track_list [iters, B, S, N, 2] pixel (x, y), one entry per iteration, the last
+    being the prediction; vis [B, S, N] and conf [B, S, N] in (0, 1), conf None when
+    `config.track_head.predict_conf` is off).
+    """
+    if images.ndim != 5:
+        raise ValueError(f"images must be [B, S, 3, H, W], got shape {images.shape}")
+    if query_points.ndim != 3 or query_points.shape[-1] != 2:
+        raise ValueError(f"query_points must be [B, N, 2] (add the batch axis to [N, 2]), "
+                         f"got shape {query_points.shape}")
+    fmaps = track_features(params, aggregated, images, patch_start_idx, config)
+    return track_predictor(params["tracker"], query_points, fmaps, config.track_head, iters=iters)
