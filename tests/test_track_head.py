@@ -34,7 +34,7 @@ import pytest
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.heads import tracker as trk
 from rvggt_jax.heads.track import track_features, track_head
-from tests._track_params import DATA, load_track_params
+from tests._heads_params import DATA, load_track_params
 
 RTOL = 1e-4
 # Iteration 4 vs io.safetensors: about twice upstream's own spread under 1e-7 input noise.

@@ -1,0 +1,239 @@
+"""Loading and saving VGGT parameters.
+
+- `load_pretrained(path)` -> `(params, config)` from an upstream `model.safetensors`
+  (a folder holding one, or the file itself; a `config.json` beside it is read, else
+  VGGT-1B is assumed) or from an Orbax checkpoint folder written by `save_orbax`.
+- `save_orbax(params, config, dst_dir)` writes `dst_dir/params/` (Orbax) and
+  `dst_dir/config.json`.
+
+The converter itself lives in the top-level `convert` package (imported lazily here, as
+is Orbax, so importing this module stays cheap).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import shutil
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from rvggt_jax.config import VGGTConfig
+
+ORBAX_SUBDIR = "params"
+CONFIG_NAME = "config.json"
+SAFETENSORS_NAME = "model.safetensors"
+_LIST_LIMIT = 50  # per category in error messages
+# Orbax reads at most this many GB at a time: peak ~1.3x the checkpoint instead of ~2x.
+_RESTORE_CONCURRENT_GB = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that does not match the layout expected for its config.
+
+    Carries every problem at once: `missing` [(key, expected shape)], `unexpected` [key],
+    `mismatched` [(key, shape, expected shape)], `bad_dtype` [(key, dtype)]."""
+
+    def __init__(
+        self,
+        message: str | None = None,
+        *,
+        missing: Sequence[tuple[str, tuple]] = (),
+        unexpected: Sequence[str] = (),
+        mismatched: Sequence[tuple[str, tuple, tuple]] = (),
+        bad_dtype: Sequence[tuple[str, str]] = (),
+    ):
+        self.missing = list(missing)
+        self.unexpected = list(unexpected)
+        self.mismatched = list(mismatched)
+        self.bad_dtype = list(bad_dtype)
+        super().__init__(message or self._describe())
+
+    def _describe(self) -> str:
+        counts = (
+            f"{len(self.missing)} missing, {len(self.unexpected)} unexpected, "
+            f"{len(self.mismatched)} with the wrong shape, {len(self.bad_dtype)} not floating point"
+        )
+        lines = [f"checkpoint does not match the VGGT layout of its config: {counts}"]
+
+        def section(title: str, items: list, fmt) -> None:
+            if not items:
+                return
+            lines.append(f"{title}:")
+            lines.extend(f"  {fmt(it)}" for it in items[:_LIST_LIMIT])
+            if len(items) > _LIST_LIMIT:
+                lines.append(f"  ... and {len(items) - _LIST_LIMIT} more")
+
+        section("missing", self.missing, lambda t: f"{t[0]} (expected shape {tuple(t[1])})")
+        section("unexpected", self.unexpected, str)
+        section("wrong shape", self.mismatched, lambda t: f"{t[0]}: {tuple(t[1])}, expected {tuple(t[2])}")
+        section("not floating point", self.bad_dtype, lambda t: f"{t[0]}: {t[1]}")
+        return "\n".join(lines)
+
+
+# ---- Orbax ------------------------------------------------------------------------------------
+
+
+def _config_for(params: Mapping[str, Any], config: VGGTConfig) -> VGGTConfig:
+    """`config` with enable_track off when the params carry no track head (e.g. --no-track)."""
+    if config.enable_track and "track_head" not in params:
+        return dataclasses.replace(config, enable_track=False)
+    return config
+
+
+def _check_tree(flat_have: Mapping[tuple, tuple], flat_want: Mapping[tuple, tuple]) -> None:
+    missing = [(".".join(p), s) for p, s in flat_want.items() if p not in flat_have]
+    unexpected = [".".join(p) for p in flat_have if p not in flat_want]
+    mismatched = [(".".join(p), s, flat_want[p]) for p, s in flat_have.items() if p in flat_want and s != flat_want[p]]
+    if missing or unexpected or mismatched:
+        raise CheckpointError(missing=missing, unexpected=unexpected, mismatched=mismatched)
+
+
+def save_orbax(params: Mapping[str, Any], config: VGGTConfig, dst_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Write `params` (our converted pytree, numpy or jax leaves) as an Orbax checkpoint in
+    `dst_dir/params/` plus `dst_dir/config.json`; returns `dst_dir`.
+
+    The tree is checked against `config` first (`CheckpointError` on any difference). A
+    tree without `track_head` is saved with `enable_track=False` in config.json."""
+    import orbax.checkpoint as ocp
+
+    from convert.convert import expected_param_paths, flatten_params
+
+    config = _config_for(params, config)
+    have = {p: tuple(v.shape) for p, v in flatten_params(params).items()}
+    _check_tree(have, expected_param_paths(config))
+
+    dst = Path(dst_dir).absolute()
+    target = dst / ORBAX_SUBDIR
+    if target.exists() and not overwrite:
+        raise FileExistsError(f"{target} already exists (pass overwrite=True / --overwrite to replace it)")
+    if target.exists():  # overwrite (Orbax's own force=True is ~10x slower than this)
+        shutil.rmtree(target)
+    dst.mkdir(parents=True, exist_ok=True)
+    # Synchronous (no async host copy of the whole tree) and without OCDBT, which buffers
+    # ~0.7x the checkpoint in memory before committing (VGGT-1B: +0.2 GB instead of
+    # +3.3 GB over the params, and half the time). numpy leaves still cost Orbax a copy
+    # each; host-CPU jax.Array leaves do not (see convert.cli).
+    ckptr = ocp.Checkpointer(ocp.PyTreeCheckpointHandler(use_ocdbt=False))
+    try:
+        with _quiet_absl():
+            ckptr.save(target, args=ocp.args.PyTreeSave(params))
+    finally:
+        ckptr.close()
+    config.to_json(dst / CONFIG_NAME)
+    return dst
+
+
+@contextlib.contextmanager
+def _quiet_absl():
+    """Orbax logs routine absl WARNINGs (e.g. 'Skipping merge of OCDBT checkpoints') on
+    every non-OCDBT save; keep errors only while we call it."""
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(max(level, logging.ERROR))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def _is_orbax_dir(d: Path) -> bool:
+    return (d / "_CHECKPOINT_METADATA").is_file() or (d / "_METADATA").is_file()
+
+
+def _read_config(candidates: Iterable[Path]) -> VGGTConfig:
+    for c in candidates:
+        if c.is_file():
+            return VGGTConfig.from_json(c)
+    return VGGTConfig()
+
+
+def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_put: bool):
+    import jax
+    import numpy as np
+    import orbax.checkpoint as ocp
+
+    from convert.convert import expected_param_paths, flatten_params, unflatten_params
+
+    want = expected_param_paths(config, skip_track=skip_track)
+    if device_put:  # straight to the default device, at most ~1 GB in flight on the host
+        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        item = {p: jax.ShapeDtypeStruct(s, np.float32, sharding=sharding) for p, s in want.items()}
+        args = {p: ocp.ArrayRestoreArgs(sharding=sharding, global_shape=s, dtype=np.float32) for p, s in want.items()}
+    else:
+        item = {p: jax.ShapeDtypeStruct(s, np.float32) for p, s in want.items()}
+        args = {p: ocp.RestoreArgs(restore_type=np.ndarray, dtype=np.float32) for p in want}
+    restore = ocp.args.PyTreeRestore(
+        item=unflatten_params(item),
+        restore_args=unflatten_params(args),
+        # save_orbax keeps config.json consistent with the saved tree, so a tree with a
+        # track head is exactly a config with enable_track
+        partial_restore=skip_track and config.enable_track,
+    )
+    ckptr = ocp.Checkpointer(ocp.PyTreeCheckpointHandler(restore_concurrent_gb=_RESTORE_CONCURRENT_GB))
+    try:
+        with _quiet_absl():
+            params = ckptr.restore(ckpt_dir, args=restore)
+    except ValueError as e:  # tree structure (or, for jax leaves, a shape) differs from config.json's
+        raise CheckpointError(f"Orbax checkpoint {ckpt_dir} does not match its {CONFIG_NAME}:\n{e}") from e
+    finally:
+        ckptr.close()
+    # numpy restores come back in the stored shape whatever was asked: check them all
+    _check_tree({p: tuple(v.shape) for p, v in flatten_params(params).items()}, want)
+    return params
+
+
+def load_pretrained(
+    path: str | Path,
+    *,
+    skip_track: bool = False,
+    device_put: bool = True,
+    progress: bool = False,
+) -> tuple[dict, VGGTConfig]:
+    """Load VGGT parameters -> `(params, config)`.
+
+    `path` is one of:
+      - a folder with `model.safetensors` (+ optional `config.json`, else VGGT-1B);
+      - a `.safetensors` file (a `config.json` beside it is used if present);
+      - an Orbax folder written by `save_orbax` (`params/` + `config.json`), or its
+        `params/` subfolder.
+    Upstream checkpoints are converted on the fly (checked first, one `CheckpointError`
+    for every problem). `skip_track=True` drops the track head (and returns a config with
+    `enable_track=False`). Leaves are float32 `jax.Array`s on the default device, or numpy
+    arrays with `device_put=False`.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"checkpoint path does not exist: {p}")
+
+    if p.is_file():
+        if p.suffix != ".safetensors":
+            raise ValueError(f"{p}: expected a .safetensors file or a checkpoint folder")
+        st, config = p, _read_config([p.parent / CONFIG_NAME])
+    elif _is_orbax_dir(p / ORBAX_SUBDIR) or _is_orbax_dir(p):
+        ckpt_dir = p / ORBAX_SUBDIR if _is_orbax_dir(p / ORBAX_SUBDIR) else p
+        config = _read_config([ckpt_dir.parent / CONFIG_NAME, ckpt_dir / CONFIG_NAME])
+        params = _load_orbax(ckpt_dir.absolute(), config, skip_track=skip_track, device_put=device_put)
+        return params, _final_config(config, skip_track)
+    elif (p / SAFETENSORS_NAME).is_file():
+        st, config = p / SAFETENSORS_NAME, _read_config([p / CONFIG_NAME])
+    else:
+        raise FileNotFoundError(
+            f"{p} holds neither an Orbax checkpoint written by save_orbax ({ORBAX_SUBDIR}/ + {CONFIG_NAME}) "
+            f"nor an upstream {SAFETENSORS_NAME}"
+        )
+
+    from convert.convert import load_safetensors
+
+    leaf_fn = None
+    if device_put:
+        import jax
+
+        leaf_fn = jax.device_put
+    params = load_safetensors(st, config, skip_track=skip_track, progress=progress, leaf_fn=leaf_fn)
+    return params, _final_config(config, skip_track)
+
+
+def _final_config(config: VGGTConfig, skip_track: bool) -> VGGTConfig:
+    return dataclasses.replace(config, enable_track=False) if skip_track and config.enable_track else config
