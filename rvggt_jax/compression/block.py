@@ -1,0 +1,229 @@
+"""The compressed global block and its per-forward state.
+
+    state = init_state(config, saliency, frames, grid_hw)      # once per forward
+    x, state = global_block(p_block, x, pos, layer, config, state)
+
+`layer` is a Python int and the aggregator loops over layers in Python, so every layer
+has its own static plan (`plan.layer_plan`) and the state may gain entries (the band
+caches) from one layer to the next. Nothing branches on data: every shape comes from
+(x.shape, grid, configuration).
+
+The state is a dict:
+  geometry   static `Geometry` (frames, grid, special tokens; a static pytree node)
+  protected  [B, N] bool, the Psi- (or stride-) protected tokens (absent without protection)
+  protected_pos [B, P] int32, their positions (saliency protection)
+  match      {cache key: match} (see merge.py), the band-aligned match cache
+  kv         {cache key + K/V rule: (idx, valid)}, the dynamic K/V slots of cached matches
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax import layers
+from rvggt_jax.compression import attention as attn_lib
+from rvggt_jax.compression import kv as kv_lib
+from rvggt_jax.compression import merge as merge_lib
+from rvggt_jax.compression.partition import kv_static_keep, partition, saliency_protect_count, stride_protected
+from rvggt_jax.compression.plan import LayerPlan, fixed_kv_index, layer_plan, padded_head_dim
+
+State = dict[str, Any]
+
+# Trace-time record of the shapes the block really uses (see `record_shapes`).
+_SHAPE_LOG: list[dict[str, Any]] | None = None
+
+
+class record_shapes:
+    """Context manager collecting, at trace time, one dict per compressed global block:
+    layer, kind, queries, kv slots, the folded head dim. Used by the cost-model tests."""
+
+    def __enter__(self):
+        global _SHAPE_LOG
+        self._prev, _SHAPE_LOG = _SHAPE_LOG, []
+        return _SHAPE_LOG
+
+    def __exit__(self, *exc):
+        global _SHAPE_LOG
+        _SHAPE_LOG = self._prev
+        return False
+
+
+def _log(**kw):
+    if _SHAPE_LOG is not None:
+        _SHAPE_LOG.append(kw)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    frames: int
+    h: int
+    w: int
+    num_special: int
+
+    @property
+    def per_frame(self) -> int:
+        return self.num_special + self.h * self.w
+
+
+jax.tree_util.register_static(Geometry)
+
+
+def init_state(config, saliency: jax.Array | None, frames: int, grid_hw: tuple[int, int]) -> State:
+    """Per-forward state: protection flags from the saliency Psi [B, S, h*w].
+
+    Protected patches of a frame s >= 1: its top max(1, floor(alpha*T)) patches under Psi
+    (`lax.top_k`); with `protect="stride"` a fixed stride over the sequence (FastVGGT)."""
+    cc = config.compression
+    h, w = grid_hw
+    ns = config.patch_start_idx
+    geom = Geometry(frames, h, w, ns)
+    L = geom.per_frame
+    N = frames * L
+    state: State = {"geometry": geom, "match": {}, "kv": {}}
+    if cc.protect == "saliency":
+        kp = saliency_protect_count(h, w, cc.alpha)
+        if saliency is None:
+            raise ValueError("saliency protection needs the saliency Psi [B, S, h*w]")
+        b = saliency.shape[0]
+        if saliency.shape != (b, frames, h * w):
+            raise ValueError(f"saliency must be [B, {frames}, {h * w}]; got {saliency.shape}")
+        if kp > 0 and frames > 1:
+            _, top = jax.lax.top_k(saliency[:, 1:].astype(jnp.float32), kp)  # [B, S-1, kp]
+            offsets = (jnp.arange(1, frames, dtype=jnp.int32) * L + ns)[None, :, None]
+            pos = (top.astype(jnp.int32) + offsets).reshape(b, -1)
+            flags = jnp.zeros((b, N), bool).at[jnp.arange(b)[:, None], pos].set(True)
+            state["protected_pos"] = pos
+            state["protected"] = flags
+    elif cc.protect == "stride":
+        b = 1 if saliency is None else saliency.shape[0]
+        pos = stride_protected(N, cc.alpha)
+        flags = np.zeros(N, bool)
+        flags[pos] = True
+        state["protected_pos"] = jnp.broadcast_to(jnp.asarray(pos, jnp.int32), (b, pos.size))
+        state["protected"] = jnp.broadcast_to(jnp.asarray(flags), (b, N))
+    return state
+
+
+def plan_for(config, layer: int, geom: Geometry) -> LayerPlan:
+    return layer_plan(config.compression, layer, geom.frames, geom.h, geom.w, geom.num_special)
+
+
+def _residual_mlp(p, x: jax.Array, attn_out: jax.Array) -> jax.Array:
+    x = x + layers.layer_scale(p.get("ls1"), attn_out)
+    return x + layers.layer_scale(p.get("ls2"), layers.mlp(p["mlp"], layers.layer_norm(p["norm2"], x)))
+
+
+def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State
+                 ) -> tuple[jax.Array, State]:
+    """One global block under the configured compression.
+
+    p_block: one upstream Block's params; x [B, N, C], N = S*P; pos [1, N, 2] int32 RoPE
+    positions; layer: the global layer index (Python int). Returns (x [B, N, C], state)."""
+    cc = config.compression
+    geom: Geometry = state["geometry"]
+    plan = plan_for(config, layer, geom)
+    b, n, c = x.shape
+    if n != plan.tokens:
+        raise ValueError(f"global block {layer}: {n} tokens but the state describes {plan.tokens}")
+    heads, freq = config.num_heads, config.rope_freq
+    d = c // heads
+
+    if plan.kind == "dense":
+        _log(layer=layer, kind="dense", queries=n, kv=n, head_dim=d)
+        return layers.block(p_block, x, heads, pos, freq), state
+    if plan.kind == "frame":
+        L = geom.per_frame
+        _log(layer=layer, kind="frame", queries=L, kv=L, head_dim=d)
+        out = layers.block(p_block, x.reshape(b * geom.frames, L, c), heads, pos[:, :L], freq)
+        return out.reshape(b, n, c), state
+
+    state = dict(state)
+    part = partition(geom.frames, geom.h, geom.w, geom.num_special, cc.dst_seed)
+    xn = layers.layer_norm(p_block["norm1"], x)
+    q, k, v = layers.attention_qkv(p_block["attn"], xn, heads, pos, freq)  # [B, N, H, d]
+    protected = state.get("protected")
+
+    if plan.kind == "kv":
+        fixed = fixed_kv_index(cc, layer, geom.frames, geom.h, geom.w, geom.num_special)
+        kk, vv = jnp.take(k, fixed, axis=1, mode="clip"), jnp.take(v, fixed, axis=1, mode="clip")
+        log_g = None
+        if plan.n_dyn:
+            idx, ok = kv_lib.dynamic_slots(plan, part, cc, None, protected, geom.num_special, geom.h, geom.w)
+            kk = jnp.concatenate([kk, _take_rows(k, idx)], axis=1)
+            vv = jnp.concatenate([vv, _take_rows(v, idx)], axis=1)
+            valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+            log_g = attn_lib.log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
+        out = attn_lib.size_biased_attention(q, kk, vv, log_g, cc.head_pad_multiple, cc.query_chunk)
+        _log(layer=layer, kind="kv", queries=q.shape[1], kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
+        out = layers.linear(p_block["attn"]["proj"], out.reshape(b, n, c))
+        return _residual_mlp(p_block, x, out), state
+
+    # ---- merging layer -------------------------------------------------------------------
+    if plan.match == "reuse":
+        match = state["match"][plan.match_key]
+    else:
+        metric = x if plan.metric == "input" else xn
+        prot_src = None if protected is None else jnp.take(protected, part.src_pos, axis=1, mode="clip")
+        match = merge_lib.compute_match(metric, prot_src, part, plan, cc.match_chunk)
+        if plan.match_key is not None:
+            state["match"] = {**state["match"], plan.match_key: match}
+
+    qkv = jnp.concatenate([q, k, v], axis=-1).reshape(b, n, 3 * c)
+    merged = merge_lib.merge(qkv, match, plan.n_query).reshape(b, plan.n_query, heads, 3 * d)
+    qm, km, vm = merged[..., :d], merged[..., d:2 * d], merged[..., 2 * d:]
+    sizes = match["sizes"]
+
+    if plan.kv_mode == "all":
+        kk, vv, g, valid = km, vm, sizes, None
+    else:
+        fixed = fixed_kv_index(cc, layer, geom.frames, geom.h, geom.w, geom.num_special)
+        kv_key = None if plan.match_key is None else f"{plan.match_key}|{plan.tile}"
+        if kv_key is not None and kv_key in state["kv"]:
+            idx, ok = state["kv"][kv_key]
+        else:
+            idx, ok = kv_lib.dynamic_slots(plan, part, cc, match, protected, geom.num_special, geom.h, geom.w)
+            if kv_key is not None:
+                state["kv"] = {**state["kv"], kv_key: (idx, ok)}
+        sel = jnp.concatenate([jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size)), idx], axis=1)
+        kk, vv = _take_rows(km, sel), _take_rows(vm, sel)
+        g = jnp.take_along_axis(sizes, sel, axis=1, mode="promise_in_bounds")
+        valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+
+    if plan.n_dup:
+        # The authors' artefact: the protected tokens once more, un-merged, size 1.
+        ppos = state["protected_pos"]
+        kk = jnp.concatenate([kk, _take_rows(k, ppos)], axis=1)
+        vv = jnp.concatenate([vv, _take_rows(v, ppos)], axis=1)
+        g = jnp.concatenate([g, jnp.ones(ppos.shape, jnp.float32)], axis=1)
+        dup_ok = jnp.ones(ppos.shape, bool)
+        if plan.kv_mode == "select" and not (cc.kv_protect_saliency and cc.protect == "saliency"):
+            keep = jnp.asarray(kv_static_keep(geom.frames, geom.h, geom.w, geom.num_special, plan.tile,
+                                              cc.phase_shift, cc.anchor))
+            dup_ok = jnp.take(keep, ppos, mode="clip")
+        if valid is None:
+            valid = jnp.ones(g.shape[:1] + (g.shape[1] - ppos.shape[1],), bool)
+        valid = jnp.concatenate([valid, dup_ok], axis=1)
+
+    log_g = None
+    if plan.size_column:
+        if not cc.size_bias:
+            g = jnp.ones_like(g)
+        log_g = attn_lib.log_sizes(g, valid if plan.masked else None)
+    out = attn_lib.size_biased_attention(qm, kk, vv, log_g, cc.head_pad_multiple, cc.query_chunk)
+    _log(layer=layer, kind="merge", queries=qm.shape[1], kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
+    out = layers.linear(p_block["attn"]["proj"], out.reshape(b, plan.n_query, c))
+    return _residual_mlp(p_block, x, merge_lib.unmerge(out, match)), state
+
+
+def _take_rows(x: jax.Array, idx: jax.Array) -> jax.Array:
+    """x [B, N, ...], idx [B, M] -> [B, M, ...]."""
+    return jnp.take_along_axis(x, idx.reshape(idx.shape + (1,) * (x.ndim - 2)), axis=1, mode="promise_in_bounds")
+
+
+def _folded_dim(d: int, log_g, cc) -> int:
+    return padded_head_dim(d, log_g is not None, cc.head_pad_multiple)

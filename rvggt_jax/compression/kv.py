@@ -1,0 +1,57 @@
+"""Phase-shifted K/V sub-grid on the merged tokens: static slot bounds, dynamic slots and
+masks.
+
+A merged token is kept as a key/value when its parent position (its dst, or itself if
+unmerged) is kept by `partition.kv_static_keep` (camera/register token, frame-0 anchor,
+phase-shifted sub-grid) or, in the paper variant, Psi-protected. The dst part of the
+query layout has static parents, so its kept slots are static indices
+(`plan.fixed_kv_index`); the unmerged src are data-dependent, so they fill `n_dyn`
+slots by compaction (kept candidates first), the rest masked.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax.compression.partition import Partition, kv_static_keep
+from rvggt_jax.compression.plan import LayerPlan
+
+
+def compact(valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
+    """valid [B, P] bool -> (indices [B, n] of the first n True entries, then False ones;
+    their validity [B, n]). Stable: True entries keep their order."""
+    order = jnp.argsort(~valid, axis=-1, stable=True)[:, :n].astype(jnp.int32)
+    return order, jnp.take_along_axis(valid, order, axis=-1, mode="promise_in_bounds")
+
+
+def dynamic_slots(plan: LayerPlan, part: Partition, cc, match: dict[str, jax.Array] | None,
+                  protected: jax.Array | None, ns: int, h: int, w: int) -> tuple[jax.Array, jax.Array]:
+    """The data-dependent K/V slots of a layer: (indices into the query layout [B, n_dyn],
+    valid [B, n_dyn]).
+
+    protected: [B, N] bool Psi-protection flags (only read when the plan keeps protected
+    tokens in K/V)."""
+    keep = jnp.asarray(kv_static_keep(plan.frames, h, w, ns, plan.tile, cc.phase_shift, cc.anchor))
+    psi = cc.kv_protect_saliency and protected is not None
+    if plan.kind == "kv":
+        # Identity layout: candidates are the positions not kept statically.
+        cand = np.flatnonzero(~np.asarray(kv_static_keep(plan.frames, h, w, ns, plan.tile, cc.phase_shift,
+                                                         cc.anchor)))
+        valid = jnp.take(protected, cand, axis=1, mode="clip")
+        idx, ok = compact(valid, plan.n_dyn)
+        return jnp.take(jnp.asarray(cand, jnp.int32), idx, mode="clip"), ok
+    unm_pos = match["unm_pos"]  # [B, U]
+    valid = jnp.take(keep, unm_pos, mode="clip")
+    if psi:
+        valid = valid | jnp.take_along_axis(protected, unm_pos, axis=1, mode="promise_in_bounds")
+    cand = plan.n_dst + jnp.broadcast_to(jnp.arange(plan.n_unm, dtype=jnp.int32), unm_pos.shape)
+    if psi:
+        keep_np = np.asarray(kv_static_keep(plan.frames, h, w, ns, plan.tile, cc.phase_shift, cc.anchor))
+        dst_not_kept = np.flatnonzero(~keep_np[part.dst_pos])  # indices into the dst part
+        valid = jnp.concatenate([jnp.take(protected, part.dst_pos[dst_not_kept], axis=1, mode="clip"), valid], axis=1)
+        cand = jnp.concatenate([jnp.broadcast_to(jnp.asarray(dst_not_kept, jnp.int32),
+                                                 (cand.shape[0], dst_not_kept.size)), cand], axis=1)
+    idx, ok = compact(valid, plan.n_dyn)
+    return jnp.take_along_axis(cand, idx, axis=1, mode="promise_in_bounds"), ok
