@@ -165,29 +165,17 @@ def apply_rule(kind: str, key: str, x: np.ndarray) -> Iterator[tuple[Path, np.nd
             yield module + ("bias",), x
         else:
             raise ValueError(f"{key}: a {kind} rule needs a .weight or .bias leaf")
-    elif kind == QKV:
-        parent = module[:-1]  # '...attn.qkv' -> '...attn'
-        if leaf == "weight":
-            _rank(x, 2, key, kind)
-            for name, w in zip("qkv", _split3(x, key)):
-                yield parent + (name, "kernel"), w.T
-        elif leaf == "bias":
-            _rank(x, 1, key, kind)
-            for name, b in zip("qkv", _split3(x, key)):
-                yield parent + (name, "bias"), b
+    elif kind in (QKV, MHA_IN_PROJ):
+        # fused q/k/v projections: rows 0:C, C:2C, 2C:3C become three Linears
+        if kind == QKV:
+            parent, w_leaf, b_leaf = module[:-1], "weight", "bias"  # '...attn.qkv' -> '...attn'
         else:
-            raise ValueError(f"{key}: a {kind} rule needs a .weight or .bias leaf")
-    elif kind == MHA_IN_PROJ:
-        if leaf == "in_proj_weight":
-            _rank(x, 2, key, kind)
-            for name, w in zip("qkv", _split3(x, key)):
-                yield module + (name, "kernel"), w.T
-        elif leaf == "in_proj_bias":
-            _rank(x, 1, key, kind)
-            for name, b in zip("qkv", _split3(x, key)):
-                yield module + (name, "bias"), b
-        else:
-            raise ValueError(f"{key}: a {kind} rule needs an .in_proj_weight or .in_proj_bias leaf")
+            parent, w_leaf, b_leaf = module, "in_proj_weight", "in_proj_bias"
+        if leaf not in (w_leaf, b_leaf):
+            raise ValueError(f"{key}: a {kind} rule needs a .{w_leaf} or .{b_leaf} leaf")
+        _rank(x, 2 if leaf == w_leaf else 1, key, kind)
+        for name, part in zip("qkv", _split3(x, key)):
+            yield (parent + (name, "kernel"), part.T) if leaf == w_leaf else (parent + (name, "bias"), part)
     elif kind == NORM:
         _rank(x, 1, key, kind)
         if leaf == "weight":

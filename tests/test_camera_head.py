@@ -12,14 +12,9 @@ import pytest
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.heads.camera import activate_pose, camera_head
 from tests._heads_params import DATA, load_head_params, load_io
+from conftest import rel_err
 
 RTOL = 1e-4
-
-
-def rel_err(ours, ref) -> float:
-    ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
-    assert ours.shape == ref.shape, (ours.shape, ref.shape)
-    return float(np.max(np.abs(ours - ref)) / np.max(np.abs(ref)))
 
 
 @pytest.fixture(scope="module")

@@ -35,6 +35,7 @@ from rvggt_jax.config import VGGTConfig
 from rvggt_jax.heads import tracker as trk
 from rvggt_jax.heads.track import track_features, track_head
 from tests._heads_params import DATA, load_track_params
+from conftest import rel_err
 
 RTOL = 1e-4
 # Iteration 4 vs io.safetensors: about twice upstream's own spread under 1e-7 input noise.
@@ -64,12 +65,6 @@ UPSTREAM_ITERS_1_2 = {
                  0.5258175, 0.6297126, 0.4712301, 0.77122897, 0.79675865, 0.515902, 0.5885488],
     },
 }
-
-
-def rel_err(ours, ref) -> float:
-    ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
-    assert ours.shape == ref.shape, (ours.shape, ref.shape)
-    return float(np.max(np.abs(ours - ref)) / np.max(np.abs(ref)))
 
 
 @pytest.fixture(scope="module")
