@@ -53,12 +53,18 @@ def main(argv=None) -> None:
     ap.add_argument("--features", type=int, default=64, help="DPT feature width")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (the machine's cores)")
+    ap.add_argument("--layout", choices=("small", "1b"), default="small",
+                    help="small: the widths above; 1b: the full VGGT-1B layout (embed 1024, 16 heads, "
+                         "DINO ViT-L, DPT 256), random weights, ~5 GB")
     args = ap.parse_args(argv)
 
     import torch
 
     torch.set_num_threads(args.threads)
-    config = bench_config(args.embed_dim, args.heads, args.dino_depth, args.features)
+    if args.layout == "1b":
+        config = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False).validate()
+    else:
+        config = bench_config(args.embed_dim, args.heads, args.dino_depth, args.features)
     model = build_upstream(config, args.vggt_src)
     with tempfile.TemporaryDirectory() as tmp:
         save_checkpoint(model, config, tmp)

@@ -26,14 +26,25 @@ def setup():
     return config, io, aggregated, image_hw
 
 
+# Frames per group of the head: 3 at the default (one group), 1 (three groups), and 2
+# (two groups, the second padded with a zero frame).
+FRAME_GROUPS = {"all": None, "one": 1, "two": 2 * 112 * 154}
+
+
+@pytest.mark.parametrize("groups", FRAME_GROUPS)
 @pytest.mark.parametrize("name, head, pred_key", [
     ("depth_head", dpt.depth_head, "depth"),
     ("point_head", dpt.point_head, "world_points"),
 ])
-def test_dense_head_matches_upstream(setup, name, head, pred_key):
+def test_dense_head_matches_upstream(setup, name, head, pred_key, groups, monkeypatch):
     config, io, aggregated, image_hw = setup
+    if FRAME_GROUPS[groups] is not None:
+        monkeypatch.setattr(dpt, "GROUP_PIXELS", FRAME_GROUPS[groups])
+    expected = {"all": 3, "one": 1, "two": 2}[groups]
+    assert dpt.frames_per_group(3, image_hw) == expected
     params = load_head_params(name, TRANSPOSED)
-    pred, conf = jax.jit(head, static_argnums=(2, 3))(params, aggregated, image_hw, config)
+    # a fresh function per case: jit's trace cache must not reuse another grouping
+    pred, conf = jax.jit(lambda p, a: head(p, a, image_hw, config))(params, aggregated)
     e_pred = rel_err(pred, io[pred_key])
     e_conf = rel_err(conf, io[pred_key + "_conf"])
     print(f"{name}: rel err {pred_key} {e_pred:.3g}, {pred_key}_conf {e_conf:.3g}")
@@ -78,3 +89,36 @@ def test_conv_transpose_patchwise_matches_scatter():
                 for c in range(2):
                     ref[0, 2 * i + a, 2 * j + c] += x[0, i, j] @ kernel[a, c]
     np.testing.assert_allclose(y, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_frames_per_group_bounds():
+    assert dpt.frames_per_group(16, (168, 224), 2 * 168 * 224) == 2
+    assert dpt.frames_per_group(16, (518, 518), 2 * 168 * 224) == 1  # never 0
+    assert dpt.frames_per_group(3, (14, 14), 10**9) == 3  # never more than there are
+
+
+def test_grouped_features_equal_ungrouped(setup, monkeypatch):
+    config, io, aggregated, image_hw = setup
+    params = load_head_params("track_head.feature_extractor", TRANSPOSED)
+    tokens = {i: jnp.asarray(io[f"aggregated_{i:02d}"]) for i in config.track_layer_idx}
+
+    def features():
+        return np.asarray(jax.jit(lambda p, t: dpt.dpt_features(
+            p, t, image_hw, config.patch_start_idx, layer_idx=config.track_layer_idx))(params, tokens))
+
+    whole = features()
+    monkeypatch.setattr(dpt, "GROUP_PIXELS", 2 * 112 * 154)
+    np.testing.assert_allclose(features(), whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+@pytest.mark.parametrize("with_bias", [True, False])
+def test_1x1_conv_as_matmul_equals_convolution(with_bias):
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.standard_normal((2, 5, 7, 6)).astype(np.float32))
+    p = {"kernel": jnp.asarray(rng.standard_normal((1, 1, 6, 4)).astype(np.float32))}
+    if with_bias:
+        p["bias"] = jnp.asarray(rng.standard_normal(4).astype(np.float32))
+    ref = jax.lax.conv_general_dilated(x, p["kernel"], (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    if with_bias:
+        ref = ref + p["bias"]
+    np.testing.assert_allclose(np.asarray(dpt.conv2d(p, x)), np.asarray(ref), rtol=1e-5, atol=1e-5)
