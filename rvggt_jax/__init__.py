@@ -6,7 +6,12 @@
 
 import importlib
 
-from rvggt_jax.config import VGGTConfig
+from rvggt_jax import xla_cpu
+
+# Before anything can start a JAX backend: multi-threaded CPU convolutions (xla_cpu.py).
+xla_cpu.prefer_threaded_convolutions()
+
+from rvggt_jax.config import VGGTConfig  # noqa: E402
 
 # Public names resolved on first use, so importing a submodule (rvggt_jax.layers) stays
 # cheap and does not pull in every head.

@@ -51,8 +51,10 @@ def aggregator_forward(
     num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
     chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
 
-    frame_pos = jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None]
-    global_pos = jnp.tile(frame_pos, (1, s, 1))
+    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D]
+    frame_pos = layers.RopeTables.from_positions(
+        jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None], config.head_dim, config.rope_freq)
+    global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
 
     if config.compression.is_dense:
         outputs = _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, sorted(keep))

@@ -172,7 +172,9 @@ def test_batch_elements_are_independent(setup):
         single = fn(params, aggregated, jnp.asarray(io["images"]), 5, jnp.asarray(q), config, 2)
         for a, b in zip(both, single):
             a = np.asarray(a)[:, k:k + 1] if a.ndim == 5 else np.asarray(a)[k:k + 1]  # tracks [I, B, ...]
-            np.testing.assert_allclose(a, np.asarray(b), rtol=1e-5, atol=1e-5)
+            # 1e-4: the feature extractor batches frames differently for B=2 (frame groups),
+            # and the tracker amplifies that float32 rounding (see FINAL_ITER_RTOL)
+            np.testing.assert_allclose(a, np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
 # ---------------------------------------------------------------------------------------

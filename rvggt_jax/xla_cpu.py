@@ -1,0 +1,64 @@
+"""XLA:CPU setting the model needs for speed: multi-threaded convolutions.
+
+jaxlib 0.10 hands every f32 NHWC convolution to YNNPACK, which runs it on one thread:
+the DPT heads' 3x3 convolutions then leave all other cores idle (measured: 1.0 cores
+busy on a 2-core machine; the same conv through XLA's Eigen path runs 2x faster on 2
+cores, and the whole forward ~10% faster). Matmuls keep YNNPACK, which is multi-threaded
+and fast.
+
+XLA reads its flags once, when the first JAX backend starts, so `import rvggt_jax`
+appends the flag to `XLA_FLAGS` then, and only when all of these hold:
+  - no JAX backend has started yet (otherwise it could not take effect);
+  - `XLA_FLAGS` does not already set `--xla_cpu_experimental_ynn_fusion_type` (yours wins);
+  - `RVGGT_XLA_CPU_CONV` is not `ynn` (the opt-out);
+  - the installed jaxlib is a version this flag was verified on (an unknown XLA flag
+    aborts the process, so other versions are left alone).
+It changes only which CPU kernel runs a convolution, not what it computes (f32 either
+way). `applied()` says whether it took effect in this process.
+"""
+
+from __future__ import annotations
+
+import os
+
+FLAG = "--xla_cpu_experimental_ynn_fusion_type=-individual_convolution"
+FLAG_NAME = FLAG.split("=")[0]
+VERIFIED_JAXLIB = ((0, 10),)  # (major, minor) versions known to have the flag
+OPT_OUT_ENV = "RVGGT_XLA_CPU_CONV"
+
+_applied = False
+
+
+def _jaxlib_version() -> tuple[int, ...]:
+    try:
+        from jaxlib.version import __version__ as v
+    except ImportError:  # pragma: no cover - jaxlib always ships it
+        return ()
+    return tuple(int(p) for p in v.split(".")[:2] if p.isdigit())
+
+
+def _backends_started() -> bool:
+    try:
+        from jax._src import xla_bridge
+    except ImportError:  # pragma: no cover
+        return True
+    started = getattr(xla_bridge, "backends_are_initialized", None)
+    return True if started is None else bool(started())
+
+
+def prefer_threaded_convolutions() -> bool:
+    """Append FLAG to XLA_FLAGS when it is safe and useful (see the module doc).
+    Returns whether it was appended by this call."""
+    global _applied
+    flags = os.environ.get("XLA_FLAGS", "")
+    if (FLAG_NAME in flags or os.environ.get(OPT_OUT_ENV, "").lower() == "ynn"
+            or _jaxlib_version() not in VERIFIED_JAXLIB or _backends_started()):
+        return False
+    os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
+    _applied = True
+    return True
+
+
+def applied() -> bool:
+    """Whether the flag was set by rvggt_jax in this process."""
+    return _applied

@@ -1,0 +1,57 @@
+"""`import rvggt_jax` routes CPU convolutions to XLA's multi-threaded path (xla_cpu.py),
+only when it safely can. Each case runs in a fresh interpreter: XLA reads its flags once."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rvggt_jax import xla_cpu
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PROBE = """
+import {first}
+import jax, jax.numpy as jnp
+import rvggt_jax
+x = jnp.zeros((2, 48, 64, 64)); k = jnp.zeros((3, 3, 64, 64))
+conv = jax.jit(lambda x: jax.lax.conv_general_dilated(x, k, (1, 1), "SAME",
+                                                       dimension_numbers=("NHWC", "HWIO", "NHWC")))
+hlo = conv.lower(x).compile().as_text()
+print(rvggt_jax.xla_cpu.applied(), "ynn" in hlo.lower())
+"""
+
+
+def _probe(first: str = "os", **env) -> tuple[str, str]:
+    full_env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", xla_cpu.OPT_OUT_ENV)}
+    full_env.update(env)
+    full_env["PYTHONPATH"] = str(ROOT)
+    if first == "started":  # a backend already running before rvggt_jax is imported
+        first = "jax; jax.numpy.ones(1)"
+    out = subprocess.run([sys.executable, "-c", PROBE.format(first=first)], env=full_env, cwd=ROOT,
+                         capture_output=True, text=True, check=True).stdout.split()
+    return out[0], out[1]
+
+
+pytestmark = pytest.mark.skipif(xla_cpu._jaxlib_version() not in xla_cpu.VERIFIED_JAXLIB,
+                                reason="flag only applied on verified jaxlib versions")
+
+
+def test_import_moves_convolutions_off_single_threaded_ynnpack():
+    assert _probe() == ("True", "False")
+
+
+def test_opt_out_keeps_xla_default():
+    assert _probe(**{xla_cpu.OPT_OUT_ENV: "ynn"}) == ("False", "True")
+
+
+def test_users_own_flag_wins():
+    assert _probe(XLA_FLAGS="--xla_cpu_experimental_ynn_fusion_type=individual_convolution") == ("False", "True")
+
+
+def test_no_effect_once_a_backend_runs():
+    assert _probe(first="started") == ("False", "True")
