@@ -64,28 +64,29 @@ def aggregator_forward(
 
 
 def _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, keep):
-    """All layers in one `lax.scan`: one compiled block body instead of 2 * depth, which
-    cuts compile time ~10x. The kept layers' outputs go to a [K, B, S, P, 2C] buffer."""
+    """All layers in one `lax.scan`: one compiled body instead of 2 * depth, which
+    cuts compile time ~10x. The kept layers' frame and global halves go to two
+    [K + 1, B, S, P, C] buffers; the other layers write to the spare slot K, so the body
+    is the same unconditional in-place write for every layer (no select, no concat)."""
     n, num_tokens, c = tokens.shape
-    slot = np.full(config.depth, -1, np.int32)
+    spare = len(keep)
+    slot = np.full(config.depth, spare, np.int32)
     slot[keep] = np.arange(len(keep))
     layer_ids = range(config.depth)
     xs = (layers.stack_blocks(p["frame_blocks"], layer_ids), layers.stack_blocks(p["global_blocks"], layer_ids), jnp.asarray(slot))
 
     def layer(carry, xs_i):
-        x, kept = carry
+        x, kept_frame, kept_global = carry
         p_frame, p_global, k = xs_i
         x = layers.block(p_frame, x.reshape(b * s, num_tokens, c), config.num_heads, frame_pos, config.rope_freq)
-        frame_out = x.reshape(b, s, num_tokens, c)
+        kept_frame = kept_frame.at[k].set(x.reshape(b, s, num_tokens, c))
         x = layers.block(p_global, x.reshape(b, s * num_tokens, c), config.num_heads, global_pos, config.rope_freq)
-        out = jnp.concatenate([frame_out, x.reshape(b, s, num_tokens, c)], axis=-1)
-        j = jnp.maximum(k, 0)
-        kept = kept.at[j].set(jnp.where(k >= 0, out, kept[j]))
-        return (x, kept), None
+        kept_global = kept_global.at[k].set(x.reshape(b, s, num_tokens, c))
+        return (x, kept_frame, kept_global), None
 
-    kept0 = jnp.zeros((max(len(keep), 1), b, s, num_tokens, 2 * c), tokens.dtype)
-    (_, kept), _ = jax.lax.scan(layer, (tokens.reshape(b, s * num_tokens, c), kept0), xs)
-    return {i: kept[j] for j, i in enumerate(keep)}
+    buf = jnp.zeros((spare + 1, b, s, num_tokens, c), tokens.dtype)
+    (_, kept_frame, kept_global), _ = jax.lax.scan(layer, (tokens.reshape(b, s * num_tokens, c), buf, buf), xs)
+    return {i: jnp.concatenate([kept_frame[j], kept_global[j]], axis=-1) for j, i in enumerate(keep)}
 
 
 def _compressed_layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid_hw):
