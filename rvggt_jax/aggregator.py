@@ -73,11 +73,13 @@ def _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, keep):
     slot = np.full(config.depth, spare, np.int32)
     slot[keep] = np.arange(len(keep))
     layer_ids = range(config.depth)
-    xs = (layers.stack_blocks(p["frame_blocks"], layer_ids), layers.stack_blocks(p["global_blocks"], layer_ids), jnp.asarray(slot))
+    xs = (jnp.arange(config.depth), jnp.asarray(slot))
 
     def layer(carry, xs_i):
         x, kept_frame, kept_global = carry
-        p_frame, p_global, k = xs_i
+        i, k = xs_i
+        p_frame = layers.select_block(p["frame_blocks"], layer_ids, i)
+        p_global = layers.select_block(p["global_blocks"], layer_ids, i)
         x = layers.block(p_frame, x.reshape(b * s, num_tokens, c), config.num_heads, frame_pos, config.rope_freq)
         kept_frame = kept_frame.at[k].set(x.reshape(b, s, num_tokens, c))
         x = layers.block(p_global, x.reshape(b, s * num_tokens, c), config.num_heads, global_pos, config.rope_freq)

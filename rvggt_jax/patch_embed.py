@@ -129,7 +129,7 @@ def dino_forward(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.
 
     depth = dino.depth
     if depth > 1:
-        x = layers.block_stack(layers.stack_blocks(p["blocks"], range(depth - 1)), x, dino.num_heads, eps=eps)
+        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps)
 
     # The last block is unrolled so that its q and k also give the saliency.
     blk = p["blocks"][str(depth - 1)]
