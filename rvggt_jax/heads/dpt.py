@@ -238,16 +238,14 @@ def map_frame_groups(fn, tokens: Sequence[jax.Array], image_hw: tuple[int, int])
     g = frames_per_group(n, image_hw)
     groups = -(-n // g)
 
-    def grouped(t):
-        t = t.reshape((n,) + t.shape[2:])
-        t = jnp.pad(t, ((0, groups * g - n),) + ((0, 0),) * (t.ndim - 1))
-        return t.reshape((groups, g) + t.shape[1:])
-
+    frames = [t.reshape((n,) + t.shape[2:]) for t in tokens]
     if groups == 1:
-        out = fn([t.reshape((n,) + t.shape[2:]) for t in tokens])
-        return jax.tree.map(lambda o: o.reshape((b, s) + o.shape[1:]), out)
-    out = jax.lax.map(fn, [grouped(t) for t in tokens])
-    return jax.tree.map(lambda o: o.reshape((groups * g,) + o.shape[2:])[:n].reshape((b, s) + o.shape[2:]), out)
+        out = fn(frames)
+    else:
+        padded = [jnp.pad(t, ((0, groups * g - n),) + ((0, 0),) * (t.ndim - 1)).reshape((groups, g) + t.shape[1:])
+                  for t in frames]
+        out = jax.tree.map(lambda o: o.reshape((groups * g,) + o.shape[2:]), jax.lax.map(fn, padded))
+    return jax.tree.map(lambda o: o[:n].reshape((b, s) + o.shape[1:]), out)
 
 
 def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[jax.Array]:
