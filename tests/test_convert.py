@@ -165,25 +165,27 @@ def test_tiny_converts_to_expected_shapes(tiny_params, tiny_config):
         assert isinstance(w, jax.ShapeDtypeStruct)
 
 
+def _assert_split_projection(sub, w, b):
+    """A fused [3C, C] projection (rows [0:C], [C:2C], [2C:3C]) became Linears q, k, v
+    with transposed kernels."""
+    c = w.shape[1]
+    for i, name in enumerate("qkv"):
+        np.testing.assert_array_equal(sub[name]["kernel"], w[i * c : (i + 1) * c].T)
+        np.testing.assert_array_equal(sub[name]["bias"], b[i * c : (i + 1) * c])
+
+
 def test_tiny_layouts(tiny_params, tiny_raw):
     p, raw = tiny_params, tiny_raw
-    # fused qkv: rows [0:C], [C:2C], [2C:3C] -> q, k, v; kernels transposed
-    w = raw["aggregator.frame_blocks.3.attn.qkv.weight"]
-    b = raw["aggregator.frame_blocks.3.attn.qkv.bias"]
-    c = w.shape[1]
+    # fused qkv -> q, k, v
     attn = _get(p, "aggregator.frame_blocks.3.attn")
-    for i, name in enumerate("qkv"):
-        np.testing.assert_array_equal(attn[name]["kernel"], w[i * c : (i + 1) * c].T)
-        np.testing.assert_array_equal(attn[name]["bias"], b[i * c : (i + 1) * c])
+    _assert_split_projection(attn, raw["aggregator.frame_blocks.3.attn.qkv.weight"],
+                             raw["aggregator.frame_blocks.3.attn.qkv.bias"])
     assert "qkv" not in attn
     # nn.MultiheadAttention in_proj -> q, k, v
-    w = raw["track_head.tracker.updateformer.space_point2virtual_blocks.1.cross_attn.in_proj_weight"]
-    b = raw["track_head.tracker.updateformer.space_point2virtual_blocks.1.cross_attn.in_proj_bias"]
-    e = w.shape[1]
     ca = _get(p, "track_head.tracker.updateformer.space_point2virtual_blocks.1.cross_attn")
-    for i, name in enumerate("qkv"):
-        np.testing.assert_array_equal(ca[name]["kernel"], w[i * e : (i + 1) * e].T)
-        np.testing.assert_array_equal(ca[name]["bias"], b[i * e : (i + 1) * e])
+    _assert_split_projection(
+        ca, raw["track_head.tracker.updateformer.space_point2virtual_blocks.1.cross_attn.in_proj_weight"],
+        raw["track_head.tracker.updateformer.space_point2virtual_blocks.1.cross_attn.in_proj_bias"])
     np.testing.assert_array_equal(ca["out_proj"]["kernel"], raw[
         "track_head.tracker.updateformer.space_point2virtual_blocks.1.cross_attn.out_proj.weight"].T)
     # Linear: [out, in] -> [in, out]
