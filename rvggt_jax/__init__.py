@@ -21,6 +21,7 @@ _LAZY = {
     "load_pretrained": "rvggt_jax.checkpoint",
     "load_images": "rvggt_jax.io.images",
     "cost_report": "rvggt_jax.cost",
+    "memory_report": "rvggt_jax.memory",
 }
 
 __all__ = ["VGGTConfig", *_LAZY]

@@ -7,6 +7,7 @@ whole sequence ([B, S*P, C]) and are where RegimeVGGT compresses (`compression.g
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Iterable
 
 import chex
@@ -14,10 +15,59 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax import compression, layers
+from rvggt_jax import chunks, compression, layers
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.layers import Params
-from rvggt_jax.patch_embed import patch_embed
+from rvggt_jax.patch_embed import patch_embed_tokens
+
+
+@jax.tree_util.register_pytree_node_class
+class KeptLayer:
+    """The tokens of one kept aggregator layer, [B, S, P, 2C] float32 on demand, without a
+    copy: its frame-block and global-block halves stay in the aggregator's stacked
+    [K + 1, B, S, P, C] buffers (compute dtype) and are sliced and concatenated per group
+    of frames where a head reads them (`frames`). At 1000 frames of VGGT-1B every full
+    copy of the four kept layers costs 17 GB in bfloat16."""
+
+    def __init__(self, frame_buf: jax.Array, global_buf: jax.Array, slot: int):
+        self.frame_buf, self.global_buf, self.slot = frame_buf, global_buf, slot
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.frame_buf.shape[1:-1] + (2 * self.frame_buf.shape[-1],)
+
+    @property
+    def ndim(self) -> int:
+        return 4
+
+    def frames(self, start: jax.Array | int, count: int) -> jax.Array:
+        """Frames [start, start + count) of the flattened B*S frames: [count, P, 2C] float32."""
+        def part(buf):
+            flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])  # [K, B*S, P, C]
+            # Frames first, then the slot, both dynamic slices: a static slot slice is
+            # loop-invariant and XLA would hoist it (cast to float32) out of the heads'
+            # loop, a float32 copy of every kept layer (34 GB at 1000 frames of VGGT-1B).
+            return chunks.dynamic_index(chunks.dynamic_slice(flat, start, count, 1), self.slot, 0)
+
+        # (the barrier keeps the float32 cast on the slice too)
+        halves = jax.lax.optimization_barrier((part(self.frame_buf), part(self.global_buf)))
+        return jnp.concatenate(halves, axis=-1).astype(jnp.float32)
+
+    def token(self, index: int) -> jax.Array:
+        """One token of every frame: [B, S, 2C] float32 (index 0: the camera token)."""
+        return jnp.concatenate([self.frame_buf[self.slot, :, :, index], self.global_buf[self.slot, :, :, index]],
+                               axis=-1).astype(jnp.float32)
+
+    def array(self) -> jax.Array:
+        """The whole layer [B, S, P, 2C] float32 (a copy)."""
+        return jnp.concatenate([self.frame_buf[self.slot], self.global_buf[self.slot]], axis=-1).astype(jnp.float32)
+
+    def tree_flatten(self):
+        return (self.frame_buf, self.global_buf), self.slot
+
+    @classmethod
+    def tree_unflatten(cls, slot, children):
+        return cls(*children, slot)
 
 
 def special_tokens(token: jax.Array, b: int, s: int) -> jax.Array:
@@ -32,7 +82,7 @@ def aggregator_forward(
     p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int]
 ) -> tuple[dict[int, jax.Array], jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] ->
-    (outputs {layer: [B, S, P, 2C]} for the layers in `keep_layers`,
+    (outputs {layer: `KeptLayer` (tokens [B, S, P, 2C])} for the layers in `keep_layers`,
      patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w]).
 
     Each output concatenates the frame-block and global-block outputs of that layer; the
@@ -43,11 +93,16 @@ def aggregator_forward(
     c = config.embed_dim
     keep = set(keep_layers)
 
-    patch_tokens, saliency = patch_embed(p["patch_embed"], images, config)
-    tokens = jnp.concatenate(
-        [special_tokens(p["camera_token"], b, s), special_tokens(p["register_token"], b, s), patch_tokens],
-        axis=1,
-    )
+    dino, num_prefix, saliency = patch_embed_tokens(p["patch_embed"], images, config)
+    patch_tokens = dino[:, num_prefix:]
+    special = jnp.concatenate([special_tokens(p["camera_token"], b, s), special_tokens(p["register_token"], b, s)],
+                              axis=1).astype(dino.dtype)
+    if num_prefix == special.shape[1]:
+        # DINO's [CLS] + registers and our camera + registers are equally many: the special
+        # tokens replace them in DINO's own buffer (no second [B*S, P, C] float32 copy)
+        tokens = dino.at[:, :num_prefix].set(special)
+    else:
+        tokens = jnp.concatenate([special, patch_tokens], axis=1)
     num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
     chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
 
@@ -56,56 +111,116 @@ def aggregator_forward(
         jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None], config.head_dim, config.rope_freq)
     global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
 
-    if config.compression.is_dense:
-        outputs = _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, sorted(keep))
-    else:
-        outputs = _compressed_layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, (h, w))
+    outputs = _layers(p, tokens, frame_pos, global_pos, config, b, s, sorted(keep), saliency, (h, w))
     return outputs, patch_tokens, saliency
 
 
-def _dense_layers(p, tokens, frame_pos, global_pos, config, b, s, keep):
-    """All layers in one `lax.scan`: one compiled body instead of 2 * depth, which
-    cuts compile time ~10x. The kept layers' frame and global halves go to two
-    [K + 1, B, S, P, C] buffers; the other layers write to the spare slot K, so the body
-    is the same unconditional in-place write for every layer (no select, no concat)."""
+def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> tuple[tuple[int, ...], ...]:
+    """Runs of consecutive layers whose global blocks share one static plan: each run is
+    one `lax.scan`. A layer that computes a band's match joins the layers that reuse it
+    (the scan computes the match at its first step and carries it). Dense: one run of
+    every layer."""
+    if config.compression.is_dense:
+        return (tuple(range(config.depth)),)
+    plans = [_plan(config, i, frames, grid_hw) for i in range(config.depth)]
+    groups: list[list[int]] = []
+    for i, plan in enumerate(plans):
+        if groups and plans[groups[-1][-1]] == plan:
+            groups[-1].append(i)
+        elif groups and plan.match == "reuse" and _storing(plans[groups[-1][0]]) and \
+                plans[groups[-1][0]] == dataclasses.replace(plan, match="compute"):
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return tuple(tuple(g) for g in groups)
+
+
+def _plan(config: VGGTConfig, layer: int, frames: int, grid_hw: tuple[int, int]):
+    """The layer's static global plan with the layer index blanked (for comparison)."""
+    plan = compression.layer_plan(config.compression, layer, frames, *grid_hw, config.patch_start_idx)
+    return dataclasses.replace(plan, layer=0)
+
+
+def _storing(plan) -> bool:
+    return plan.kind == "merge" and plan.match == "compute" and plan.match_key is not None
+
+
+def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
+    """(slot [depth] of every layer's outputs, number of spare slots). Kept layer keep[j]
+    owns slot j; any other layer writes to the slot of the next kept layer, which that
+    layer overwrites later in the same loop. Only layers after the last kept one need a
+    spare slot (K + 1): at 1000 frames of VGGT-1B a slot is 4 GB in bfloat16."""
+    keep = sorted(keep)
+    slot = np.zeros(depth, np.int32)
+    spare = int(not keep or keep[-1] < depth - 1)
+    for i in range(depth):
+        later = [j for j, k in enumerate(keep) if k >= i]
+        slot[i] = later[0] if later else len(keep)
+    return slot, spare
+
+
+def _layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid_hw):
+    """The 2 x depth blocks as one `lax.scan` per run of layers sharing a static global
+    plan (`layer_groups`: one run for dense, ~7 for `regime`). A scan compiles one body per
+    run instead of one per layer (~10x less compile time) and, above all, confines every
+    temporary of a layer to its loop body: unrolled layers let XLA hoist each layer's
+    zero-initialised buffers to the start of the program, all alive at once (3.7x the
+    memory of dense at 100 frames of VGGT-1B before this).
+
+    The kept layers' frame and global halves go to two [K, B, S, P, C] buffers in the
+    compute dtype (what the heads read), every layer writing its outputs to a slot
+    (`kept_slots`), so the body is the same unconditional in-place write for every
+    layer."""
     n, num_tokens, c = tokens.shape
-    spare = len(keep)
-    slot = np.full(config.depth, spare, np.int32)
-    slot[keep] = np.arange(len(keep))
-    layer_ids = range(config.depth)
-    xs = (jnp.arange(config.depth), jnp.asarray(slot))
+    dtype = config.compute_dtype
+    slot, spare = kept_slots(config.depth, keep)
+    state = None if config.compression.is_dense else compression.init_state(config, saliency, s, grid_hw)
 
-    def layer(carry, xs_i):
-        x, kept_frame, kept_global = carry
-        i, k = xs_i
-        p_frame = layers.select_block(p["frame_blocks"], layer_ids, i)
-        p_global = layers.select_block(p["global_blocks"], layer_ids, i)
-        x = layers.block(p_frame, x.reshape(b * s, num_tokens, c), config.num_heads, frame_pos, config.rope_freq)
-        kept_frame = kept_frame.at[k].set(x.reshape(b, s, num_tokens, c))
-        x = layers.block(p_global, x.reshape(b, s * num_tokens, c), config.num_heads, global_pos, config.rope_freq)
-        kept_global = kept_global.at[k].set(x.reshape(b, s, num_tokens, c))
-        return (x, kept_frame, kept_global), None
+    x = tokens.reshape(b, s * num_tokens, c)
+    # Made from the tokens: a constant buffer would be allocated at the program start,
+    # alive through the patch embed (chunks.zeros_after). Two distinct values: one buffer
+    # for both would make XLA copy it inside the layer loop.
+    shape = (len(keep) + spare, b, s, num_tokens, c)
+    kept_frame = chunks.zeros_after(shape, dtype, tokens)
+    kept_global = chunks.zeros_after(shape, dtype, kept_frame)
+    for group in layer_groups(config, s, grid_hw):
+        # a group that starts by computing its band's match carries it through its steps
+        band = _storing(_plan(config, group[0], s, grid_hw)) if state is not None else False
+        last = group[-1]
 
-    buf = jnp.zeros((spare + 1, b, s, num_tokens, c), tokens.dtype)
-    (_, kept_frame, kept_global), _ = jax.lax.scan(layer, (tokens.reshape(b, s * num_tokens, c), buf, buf), xs)
-    return {i: jnp.concatenate([kept_frame[j], kept_global[j]], axis=-1) for j, i in enumerate(keep)}
+        plan0 = compression.layer_plan(config.compression, group[0], s, *grid_hw, config.patch_start_idx)
+        key = plan0.match_key
 
+        def layer(carry, xs_i, group=group, band=band, last=last, key=key):
+            x, kept_frame, kept_global, cached = carry
+            i, k = xs_i
+            p_frame = layers.select_block(p["frame_blocks"], group, i)
+            p_global = layers.select_block(p["global_blocks"], group, i)
+            x = layers.block(p_frame, x.reshape(b * s, num_tokens, c), config.num_heads, frame_pos,
+                             config.rope_freq, dtype=dtype)
+            # (lax's dynamic update, not .at[k].set: the latter is a scatter that XLA
+            # lowers with a bounds check, out of place: a copy of the kept buffer per step)
+            kept_frame = jax.lax.dynamic_update_index_in_dim(kept_frame, x.reshape(b, s, num_tokens, c).astype(dtype),
+                                                             k, 0)
+            x = x.reshape(b, s * num_tokens, c)
+            if state is None:
+                x = layers.block(p_global, x, config.num_heads, global_pos, config.rope_freq, dtype=dtype)
+            elif band and len(group) > 1:
+                # the plan of the reusing layers, told to compute the match at the first step
+                st = {**state, "match": {**state["match"], key: cached}}
+                x, after = compression.global_block(p_global, x, global_pos, last, config, st, fresh=i == 0)
+                cached = after["match"][key]
+            else:
+                x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
+                if band:
+                    cached = after["match"][key]
+            kept_global = jax.lax.dynamic_update_index_in_dim(kept_global,
+                                                              x.reshape(b, s, num_tokens, c).astype(dtype), k, 0)
+            return (x, kept_frame, kept_global, cached), None
 
-def _compressed_layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid_hw):
-    """Layers unrolled in Python: each compressed global block has its own static plan and
-    the compression state may change structure between layers (band caches)."""
-    n, num_tokens, c = tokens.shape
-    state = compression.init_state(config, saliency, s, grid_hw)
-    outputs: dict[int, jax.Array] = {}
-    x = tokens
-    for i in range(config.depth):
-        x = layers.block(p["frame_blocks"][str(i)], x.reshape(b * s, num_tokens, c),
-                         config.num_heads, frame_pos, config.rope_freq)
-        frame_out = x
-        x, state = compression.global_block(p["global_blocks"][str(i)], x.reshape(b, s * num_tokens, c),
-                                            global_pos, i, config, state)
-        if i in keep:
-            outputs[i] = jnp.concatenate(
-                [frame_out.reshape(b, s, num_tokens, c), x.reshape(b, s, num_tokens, c)], axis=-1
-            )
-    return outputs
+        cached = compression.empty_match(plan0, b) if band else None
+        xs = (jnp.arange(len(group)), jnp.asarray(slot[list(group)]))
+        (x, kept_frame, kept_global, cached), _ = jax.lax.scan(layer, (x, kept_frame, kept_global, cached), xs)
+        if band:
+            state = {**state, "match": {**state["match"], key: cached}}
+    return {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}

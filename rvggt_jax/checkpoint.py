@@ -184,12 +184,35 @@ def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_
     return params
 
 
+def cast_params(params: Mapping[str, Any], param_dtype: Any) -> dict:
+    """The tree with the aggregator's weights (patch embed, frame and global blocks,
+    tokens) in `param_dtype`; the heads' weights stay float32, since the heads compute in
+    float32 (upstream's autocast keeps them there). Works on arrays and on
+    `jax.ShapeDtypeStruct` leaves. float32 returns the tree unchanged."""
+    import jax
+    import jax.numpy as jnp
+
+    dt = jnp.dtype(param_dtype)
+    if dt not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.bfloat16)):
+        raise ValueError(f"param_dtype must be float32 or bfloat16; got {param_dtype!r}")
+    if dt == jnp.float32 or "aggregator" not in params:
+        return dict(params)
+
+    def cast(leaf):
+        if isinstance(leaf, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct(leaf.shape, dt, sharding=getattr(leaf, "sharding", None))
+        return leaf.astype(dt)
+
+    return {**params, "aggregator": jax.tree.map(cast, params["aggregator"])}
+
+
 def load_pretrained(
     path: str | Path,
     *,
     skip_track: bool = False,
     device_put: bool = True,
     progress: bool = False,
+    param_dtype: Any = "float32",
 ) -> tuple[dict, VGGTConfig]:
     """Load VGGT parameters -> `(params, config)`.
 
@@ -201,7 +224,9 @@ def load_pretrained(
     Upstream checkpoints are converted on the fly (checked first, one `CheckpointError`
     for every problem). `skip_track=True` drops the track head (and returns a config with
     `enable_track=False`). Leaves are float32 `jax.Array`s on the default device, or numpy
-    arrays with `device_put=False`.
+    arrays with `device_put=False`; `param_dtype="bfloat16"` stores the aggregator's
+    weights in bfloat16 (half their memory; `cast_params`), for
+    `config.with_dtype("bfloat16")`.
     """
     p = Path(path)
     if not p.exists():
@@ -215,7 +240,7 @@ def load_pretrained(
         ckpt_dir = p / ORBAX_SUBDIR if _is_orbax_dir(p / ORBAX_SUBDIR) else p
         config = _read_config([ckpt_dir.parent / CONFIG_NAME, ckpt_dir / CONFIG_NAME])
         params = _load_orbax(ckpt_dir.absolute(), config, skip_track=skip_track, device_put=device_put)
-        return params, _final_config(config, skip_track)
+        return cast_params(params, param_dtype), _final_config(config, skip_track)
     elif (p / SAFETENSORS_NAME).is_file():
         st, config = p / SAFETENSORS_NAME, _read_config([p / CONFIG_NAME])
     else:
@@ -232,7 +257,7 @@ def load_pretrained(
 
         leaf_fn = jax.device_put
     params = load_safetensors(st, config, skip_track=skip_track, progress=progress, leaf_fn=leaf_fn)
-    return params, _final_config(config, skip_track)
+    return cast_params(params, param_dtype), _final_config(config, skip_track)
 
 
 def _final_config(config: VGGTConfig, skip_track: bool) -> VGGTConfig:

@@ -17,8 +17,12 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import jax
+import jax.numpy as jnp
 
 from rvggt_jax.compression.config import CompressionConfig, make_compression
+
+# Compute dtypes of the aggregator.
+DTYPES = ("float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -93,11 +97,20 @@ class VGGTConfig:
     # Output requests (static, so they live here): extra entries of rvggt_forward's dict.
     return_saliency: bool = False  # "saliency" [B,S,h*w] (Psi) and "patch_tokens" [B*S,h*w,C]
     return_layers: tuple[int, ...] = ()  # "aggregated_XX" [B,S,P,2C] for these layers
+    # Compute dtype of the aggregator (patch embed, frame and global blocks), as upstream's
+    # torch.autocast: "float32" (exact, the default) or "bfloat16". The heads always run
+    # in float32. See docs/method.md ("Mixed precision").
+    dtype: str = "float32"
 
     # ---- derived sizes -------------------------------------------------------------
     @property
     def head_dim(self) -> int:
         return self.embed_dim // self.num_heads
+
+    @property
+    def compute_dtype(self) -> Any:
+        """The aggregator's compute dtype as a jnp dtype."""
+        return jnp.dtype(self.dtype)
 
     @property
     def patch_start_idx(self) -> int:
@@ -133,12 +146,22 @@ class VGGTConfig:
         """A copy that also returns the saliency / these aggregator layers."""
         return replace(self, return_saliency=saliency, return_layers=tuple(layers))
 
+    def with_dtype(self, dtype: Any) -> "VGGTConfig":
+        """A copy computing the aggregator in `dtype` ("float32" or "bfloat16")."""
+        try:
+            name = jnp.dtype(dtype).name
+        except TypeError:
+            raise ValueError(f"dtype must be one of {DTYPES}; got {dtype!r}") from None
+        return replace(self, dtype=name).validate()
+
     def with_compression(self, name: str, **overrides: Any) -> "VGGTConfig":
         """A copy of this config with the named compression preset (see
         `rvggt_jax.compression.config.PRESETS`), fields overridden by name."""
         return replace(self, compression=make_compression(name, self.depth, **overrides))
 
     def validate(self) -> "VGGTConfig":
+        if self.dtype not in DTYPES:
+            raise ValueError(f"dtype must be one of {DTYPES}; got {self.dtype!r}")
         if self.embed_dim % self.num_heads:
             raise ValueError(f"embed_dim {self.embed_dim} is not divisible by num_heads {self.num_heads}")
         if self.head_dim % 4:

@@ -18,6 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvggt_jax.attention import attention
+from rvggt_jax import chunks
+from rvggt_jax.chunks import map_tokens, update_tokens
+
 Params = Mapping[str, Any]
 
 # Upstream's aggregator, camera head and DPT use torch's LayerNorm default; DINOv2 uses 1e-6.
@@ -25,38 +29,60 @@ TORCH_LN_EPS = 1e-5
 
 
 def linear(p: Params, x: jax.Array) -> jax.Array:
-    """`x @ kernel + bias`; `x` [..., in] -> [..., out]."""
-    y = jnp.matmul(x, p["kernel"])
+    """`x @ kernel + bias`; `x` [..., in] -> [..., out] in x's dtype.
+
+    The product runs in x's dtype (the compute dtype: the kernel is cast to it when it is
+    stored otherwise) and accumulates in float32, as torch's autocast matmuls do."""
+    w = p["kernel"]
+    if w.dtype != x.dtype:
+        w = w.astype(x.dtype)
+    y = jnp.matmul(x, w, preferred_element_type=jnp.float32)
     if "bias" in p:
-        y = y + p["bias"]
-    return y
+        y = y + p["bias"].astype(jnp.float32)
+    return y.astype(x.dtype)
 
 
-def layer_norm(p: Params | None, x: jax.Array, eps: float = TORCH_LN_EPS) -> jax.Array:
-    """LayerNorm over the last axis; `p=None` is the affine-free variant."""
+def layer_norm(p: Params | None, x: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
+    """LayerNorm over the last axis; `p=None` is the affine-free variant.
+
+    Statistics and the affine map in float32 whatever x's dtype (bfloat16 statistics lose
+    the mean of wide rows); the result in `dtype` (default: x's dtype)."""
+    out_dtype = x.dtype if dtype is None else dtype
+    x = x.astype(jnp.float32)
     mean = jnp.mean(x, axis=-1, keepdims=True)
     xc = x - mean
     var = jnp.mean(xc * xc, axis=-1, keepdims=True)
     y = xc * jax.lax.rsqrt(var + eps)
     if p is not None:
-        y = y * p["scale"] + p["bias"]
-    return y
+        y = y * p["scale"].astype(jnp.float32) + p["bias"].astype(jnp.float32)
+    return y.astype(out_dtype)
 
 
 def gelu(x: jax.Array) -> jax.Array:
     """Exact (erf) GELU, as torch's nn.GELU default: x/2 (1 + erf(x/sqrt(2))), torch's own
-    formula. (The tanh form differs by ~1e-3; jax.nn.gelu's exact form goes through erfc
-    and runs ~2x slower on CPU.)"""
-    return 0.5 * x * (1.0 + jax.lax.erf(x * np.float32(1.0 / math.sqrt(2.0))).astype(x.dtype))
+    formula, evaluated in float32 (the result in x's dtype). (The tanh form differs by
+    ~1e-3; jax.nn.gelu's exact form goes through erfc and runs ~2x slower on CPU.)"""
+    x32 = x.astype(jnp.float32)
+    return (0.5 * x32 * (1.0 + jax.lax.erf(x32 * np.float32(1.0 / math.sqrt(2.0))))).astype(x.dtype)
 
 
 def mlp(p: Params, x: jax.Array) -> jax.Array:
-    """fc1 -> GELU -> fc2."""
+    """fc1 -> GELU -> fc2, in x's dtype."""
     return linear(p["fc2"], gelu(linear(p["fc1"], x)))
 
 
 def layer_scale(p: Params | None, x: jax.Array) -> jax.Array:
     return x if p is None else x * p["gamma"]
+
+
+def finish_block(p: Params, x: jax.Array, attn_rows, inputs: tuple, eps: float = TORCH_LN_EPS, dtype: Any = None
+                 ) -> jax.Array:
+    """The rest of a block after attention, in one in-place pass over token chunks of x
+    [B, N, C] (the residual stream): `finish_rows` with attn_rows(*input_chunks) (inputs
+    [B, N, ...] chunked along N), e.g. the unmerged rows of a merged attention output."""
+    hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
+    return update_tokens(lambda xc, *ic: finish_rows(p, xc, attn_rows(*ic), eps, dtype), x, inputs,
+                         bytes_per_row=x.shape[0] * hidden * 4)
 
 
 # ---------------------------------------------------------------------------------------
@@ -121,119 +147,56 @@ def rope_2d(x: jax.Array, pos: "jax.Array | RopeTables", freq: float | None = No
 
 
 # ---------------------------------------------------------------------------------------
-# Attention
+# Attention (the op itself lives in rvggt_jax/attention.py)
 # ---------------------------------------------------------------------------------------
 
 
-# Bytes of one logits block when attention is computed block by block. Global attention
-# over thousands of tokens cannot hold all [B, H, Nq, Nk] logits in cache; one (batch,
-# head) pair and a slice of query rows at a time keeps the block in L2/L3 and gives the
-# value matmul hundreds of rows (XLA:CPU splits a matmul across threads by rows: under
-# ~512 rows it runs on one core). 24 MiB measured best on a 2-core EPYC (32 MiB L3):
-# 3152 tokens x 4 heads runs ~15% faster than 4 heads x 256 rows, and 2x faster than
-# 2 heads per block.
-LOGITS_BLOCK_BYTES = 24 * 2**20
-
-
-def _softmax_attend(q: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | None) -> jax.Array:
-    """q [..., n, D] (pre-scaled), kt [..., D, Nk], v [..., Nk, Dv] -> [..., n, Dv].
-    Normalises after the value product: n*Dv divisions instead of n*Nk."""
-    logits = q @ kt
-    if bias is not None:
-        logits = logits + bias
-    e = jnp.exp(logits - jax.lax.stop_gradient(logits.max(axis=-1, keepdims=True)))
-    return (e @ v) / e.sum(axis=-1, keepdims=True)
-
-
-def query_blocks(nq: int, nk: int, itemsize: int = 4, block_bytes: int | None = None) -> tuple[int, int]:
-    """(number of query blocks, rows per block) for one (batch, head) pair: the fewest
-    blocks whose [rows, Nk] logits fit `block_bytes` (default LOGITS_BLOCK_BYTES), rows
-    rounded up to a multiple of 8 so that padding stays under 8 rows per block."""
-    block_bytes = LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
-    max_rows = max(8, block_bytes // (nk * itemsize))
-    if nq <= max_rows:
-        return 1, nq
-    rows = 8 * math.ceil(math.ceil(nq / math.ceil(nq / max_rows)) / 8)
-    return math.ceil(nq / rows), rows
-
-
-def _blocked_attend(qt: jax.Array, kt: jax.Array, vt: jax.Array, bias: jax.Array | None,
-                    block_bytes: int) -> jax.Array:
-    """`_softmax_attend` one (batch, head) pair and one block of query rows at a time.
-    qt [B, H, Nq, D], kt [B, H, D, Nk], vt [B, H, Nk, Dv], bias None or broadcastable to
-    [B, H, 1, Nk] -> [B, H, Nq, Dv]."""
-    b, h, nq, d = qt.shape
-    nk, dv = vt.shape[-2:]
-    n, rows = query_blocks(nq, nk, qt.dtype.itemsize, block_bytes)
-    qb = jnp.pad(qt, ((0, 0), (0, 0), (0, n * rows - nq), (0, 0))).reshape(b * h * n, rows, d)
-    kt, vt = kt.reshape(b * h, d, nk), vt.reshape(b * h, nk, dv)
-    if bias is not None:
-        bias = jnp.broadcast_to(bias, (b, h, 1, nk)).reshape(b * h, 1, nk)
-
-    def one_block(args):
-        q_rows, i = args
-        pair = i // n
-
-        def take(x):
-            return None if x is None else jax.lax.dynamic_index_in_dim(x, pair, 0, keepdims=False)
-
-        return _softmax_attend(q_rows, take(kt), take(vt), take(bias))
-
-    out = jax.lax.map(one_block, (qb, jnp.arange(b * h * n)))
-    return out.reshape(b, h, n * rows, dv)[:, :, :nq]
-
-
-def attention(q: jax.Array, k: jax.Array, v: jax.Array, bias: jax.Array | None = None,
-              scale: float | None = None, block_bytes: int | None = None) -> jax.Array:
-    """softmax(q k^T * scale + bias) v over tokens.
-
-    q [B, Nq, H, D], k/v [B, Nk, H, D(v)], bias broadcastable to [B, H, Nq, Nk];
-    returns [B, Nq, H, Dv]. `scale` defaults to 1/sqrt(D). When all logits would take
-    more than `block_bytes` (default LOGITS_BLOCK_BYTES), they are formed block by block
-    (`query_blocks`); a bias with a query axis disables blocking."""
-    scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else scale
-    block_bytes = LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
-    b, nq, h, _ = q.shape
-    nk = k.shape[1]
-    qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)
-    kt = k.transpose(0, 2, 3, 1)
-    vt = v.transpose(0, 2, 1, 3)
-    per_query_bias = bias is not None and bias.ndim >= 2 and bias.shape[-2] != 1
-    if per_query_bias or b * h * nq * nk * q.dtype.itemsize <= block_bytes:
-        out = _softmax_attend(qt, kt, vt, bias)
-    else:
-        out = _blocked_attend(qt, kt, vt, bias, block_bytes)
-    return out.transpose(0, 2, 1, 3)
-
-
-def qkv_heads(p: Params, x: jax.Array, num_heads: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Project x [B, N, C] to q, k, v, each [B, N, H, C/H]."""
-    b, n, c = x.shape
-
-    def heads(t):
-        return t.reshape(b, n, num_heads, c // num_heads)
-
-    return heads(linear(p["q"], x)), heads(linear(p["k"], x)), heads(linear(p["v"], x))
-
-
 def attention_qkv(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
-                  rope_freq: float | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """q, k, v [B, N, H, D] of the upstream Attention: projection, qk-norm (when the
-    params have `q_norm`), then RoPE (when `pos` is given: integer positions [B|1, N, 2]
-    with `rope_freq`, or their `RopeTables`)."""
-    q, k, v = qkv_heads(p, x, num_heads)
-    if "q_norm" in p:
-        q = layer_norm(p["q_norm"], q)
-        k = layer_norm(p["k_norm"], k)
-    if pos is not None:
-        q = rope_2d(q, pos, rope_freq)
-        k = rope_2d(k, pos, rope_freq)
-    return q, k, v
+                  rope_freq: float | None = None, parts: str = "qkv") -> tuple[jax.Array, ...]:
+    """q, k, v [B, N, H, D] of the upstream Attention (those named in `parts`, in that
+    order), in x's dtype: projection, qk-norm (when the params have `q_norm`), then RoPE
+    (when `pos` is given: integer positions [B|1, N, 2] with `rope_freq`, or their
+    `RopeTables`). qk-norm and RoPE run in float32 (as under torch's autocast, where the
+    norm's float32 output feeds RoPE)."""
+    b, n, c = x.shape
+    f32 = jnp.float32
+    out = []
+    for name in parts:
+        t = linear(p[name], x).reshape(b, n, num_heads, c // num_heads)
+        if name in "qk":
+            if f"{name}_norm" in p:
+                t = layer_norm(p[f"{name}_norm"], t, dtype=f32)
+            if pos is not None:
+                t = rope_2d(t.astype(f32), pos, rope_freq)
+            t = t.astype(x.dtype)
+        out.append(t)
+    return tuple(out)
+
+
+def normed_qkv(p: Params, x: jax.Array, num_heads: int, tables: "RopeTables | None" = None,
+               eps: float = TORCH_LN_EPS, dtype: Any = None, parts: str = "qkv") -> tuple[jax.Array, ...]:
+    """q, k, v [B, N, H, D] (those in `parts`) in `dtype` of a block's attention from its
+    residual stream x [B, N, C]: norm1, projection, qk-norm, RoPE (`tables` [1|B, N, 1, D],
+    or None), over token chunks written into the results (the projections' float32
+    products and the normalised x never exist for the whole sequence at once)."""
+    dtype = x.dtype if dtype is None else dtype
+    return map_tokens(qkv_fn(p, num_heads, eps, dtype, parts), (x,) if tables is None else (x, tables.cos, tables.sin),
+                      bytes_per_row=x.shape[0] * x.shape[-1] * 4 * len(parts) + x.shape[-1] * 4)
+
+
+def qkv_fn(p: Params, num_heads: int, eps: float, dtype: Any, parts: str = "qkv"):
+    """The per-token function of `normed_qkv`: (x rows [B, r, C], cos, sin [1|B, r, 1, D]
+    or nothing) -> q, k, v rows."""
+    def one(xc, *tc):
+        pos = RopeTables(*tc) if tc else None
+        return attention_qkv(p["attn"], layer_norm(p["norm1"], xc, eps, dtype), num_heads, pos, parts=parts)
+
+    return one
 
 
 def self_attention(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
                    rope_freq: float | None = None) -> jax.Array:
-    """Upstream `Attention.forward`: x [B, N, C] -> [B, N, C]."""
+    """Upstream `Attention.forward`: x [B, N, C] -> [B, N, C], in x's dtype."""
     b, n, c = x.shape
     q, k, v = attention_qkv(p, x, num_heads, pos, rope_freq)
     out = attention(q, k, v).reshape(b, n, c)
@@ -241,11 +204,55 @@ def self_attention(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | Ro
 
 
 def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
-          rope_freq: float | None = None, eps: float = TORCH_LN_EPS) -> jax.Array:
-    """Pre-norm transformer block with LayerScale: x [B, N, C] -> [B, N, C]."""
-    x = x + layer_scale(p.get("ls1"), self_attention(p["attn"], layer_norm(p["norm1"], x, eps),
-                                                      num_heads, pos, rope_freq))
-    return x + layer_scale(p.get("ls2"), mlp(p["mlp"], layer_norm(p["norm2"], x, eps)))
+          rope_freq: float | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
+    """Pre-norm transformer block with LayerScale over B sequences: x [B, N, C] ->
+    [B, N, C], attention within each sequence.
+
+    x is the residual stream (kept in its own dtype, float32 in the model); attention and
+    MLP compute in `dtype` (default x's): the mixed precision of torch's autocast.
+    pos: RoPE tables [1|B, N, 1, D] or integer positions [1|B, N, 2] (with `rope_freq`),
+    or None.
+
+    The block is one in-place pass over x. Short sequences (frames, DINO images): whole
+    sequences per chunk, each chunk a complete block. Long sequences (the global blocks):
+    K and V of the whole sequence first, then chunks of queries, each attending to all
+    keys and finishing its rows (projection, residual, MLP). Only K and V ever exist for
+    the whole sequence."""
+    b, n, c = x.shape
+    dtype = x.dtype if dtype is None else dtype
+    if pos is not None and not isinstance(pos, RopeTables):
+        pos = RopeTables.from_positions(pos, c // num_heads, rope_freq)
+    hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
+    tables = () if pos is None else (pos.cos, pos.sin)
+    per_sequence = n * hidden * 4
+    if per_sequence <= chunks.TOKEN_CHUNK_BYTES or b == 1 and n <= 8:
+        def whole(xc, *tc):
+            q, k, v = qkv_fn(p, num_heads, eps, dtype)(xc, *tc)
+            return finish_rows(p, xc, linear(p["attn"]["proj"], attention(q, k, v).reshape(xc.shape[:2] + (c,))),
+                               eps, dtype)
+
+        if tables and tables[0].shape[0] != 1:  # per-sequence positions: chunk them too
+            return update_tokens(whole, x, tables, axis=0, bytes_per_row=per_sequence, multiple=1)
+        return update_tokens(lambda xc: whole(xc, *tables), x, axis=0, bytes_per_row=per_sequence, multiple=1)
+
+    k, v = map_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), (x, *tables),
+                      bytes_per_row=b * c * 4 * 2 + c * 4)
+
+    def rows(xc, *tc):
+        (q,) = qkv_fn(p, num_heads, eps, dtype, "q")(xc, *tc)
+        o = attention(q, k, v).reshape(xc.shape[:2] + (c,))
+        return finish_rows(p, xc, linear(p["attn"]["proj"], o), eps, dtype)
+
+    return update_tokens(rows, x, tables, bytes_per_row=b * hidden * 4)
+
+
+def finish_rows(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None
+                ) -> jax.Array:
+    """x + ls1(attn_rows), then + ls2(mlp(norm2(.))): rows of the residual stream x
+    [..., C] and the attention branch's (projected) output [..., C]."""
+    dtype = x.dtype if dtype is None else dtype
+    x = x + layer_scale(p.get("ls1"), attn_rows).astype(x.dtype)
+    return x + layer_scale(p.get("ls2"), mlp(p["mlp"], layer_norm(p["norm2"], x, eps, dtype))).astype(x.dtype)
 
 
 def select_block(blocks: Params, indices, i: jax.Array) -> Params:
@@ -254,14 +261,17 @@ def select_block(blocks: Params, indices, i: jax.Array) -> Params:
     `lax.switch` rather than stacking all blocks along a new axis, because a stack copies
     every weight on every call (~3% of the small benchmark forward; 2.4 GB per call at
     the 1B layout)."""
+    indices = list(indices)
+    if len(indices) == 1:
+        return blocks[str(indices[0])]
     return jax.lax.switch(i, [lambda j=j: blocks[str(j)] for j in indices])
 
 
 def block_stack(blocks: Params, indices, x: jax.Array, num_heads: int,
                 pos: "jax.Array | RopeTables | None" = None, rope_freq: float | None = None,
-                eps: float = TORCH_LN_EPS) -> jax.Array:
+                eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
     """Apply numbered blocks `indices` (in order) with `lax.scan`."""
     def step(h, i):
-        return block(select_block(blocks, indices, i), h, num_heads, pos, rope_freq, eps), None
+        return block(select_block(blocks, indices, i), h, num_heads, pos, rope_freq, eps, dtype), None
 
     return jax.lax.scan(step, x, jnp.arange(len(indices)))[0]

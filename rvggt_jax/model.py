@@ -16,9 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.aggregator import aggregator_forward
+from rvggt_jax.chunks import zeros_after
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.heads.camera import camera_head
-from rvggt_jax.heads.dpt import depth_head, point_head
+from rvggt_jax.heads.dpt import dense_heads
 from rvggt_jax.heads.track import track_head
 from rvggt_jax.layers import Params
 
@@ -115,21 +116,23 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
 
     out: dict[str, Any] = {}
     if config.enable_camera:
-        pose_enc_list = camera_head(params["camera_head"], agg[config.depth - 1], config.camera_head)
+        pose_enc_list = camera_head(params["camera_head"], agg[config.depth - 1].token(0)[:, :, None],
+                                    config.camera_head)
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
-    if config.enable_depth:
-        out["depth"], out["depth_conf"] = depth_head(params["depth_head"], agg, (hh, ww), config)
-    if config.enable_point:
-        out["world_points"], out["world_points_conf"] = point_head(params["point_head"], agg, (hh, ww), config)
+    out.update(dense_heads(params, agg, (hh, ww), config))
     if with_track:
         tracks, vis, conf = track_head(params["track_head"], agg, images, psi, query_points, config)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
-    out["images"] = images
+    # The returned images are a copy of the input (an argument cannot be an output): made
+    # from the last head output (x 1, exact) so that XLA makes it at the end, not at the
+    # program start where it would sit through the whole forward.
+    last = jax.tree.leaves(out)
+    out["images"] = images * (1.0 + zeros_after((), jnp.float32, last[-1])) if last else images
     if config.return_saliency:
         out["saliency"], out["patch_tokens"] = saliency, patch_tokens
     for i in config.return_layers:
-        out[f"aggregated_{i:02d}"] = agg[i]
+        out[f"aggregated_{i:02d}"] = agg[i].array()
 
     if "depth" in out:
         chex.assert_shape(out["depth"], (b, s, hh, ww, 1))

@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import layers
+from rvggt_jax.attention import attention
+from rvggt_jax.chunks import map_tokens, update_tokens
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.layers import Params
 
@@ -98,57 +100,82 @@ def patchify(p: Params, images: jax.Array, patch: int) -> jax.Array:
     x = images.reshape(n, c, h, patch, w, patch).transpose(0, 2, 4, 3, 5, 1)
     x = x.reshape(n, h * w, patch * patch * c)
     kernel = p["kernel"].reshape(patch * patch * c, -1)  # HWIO flattens in the same order
-    return x @ kernel + p["bias"]
+    return layers.linear({"kernel": kernel, "bias": p["bias"]}, x)
 
 
 def cls_saliency(q: jax.Array, k: jax.Array, num_prefix: int) -> jax.Array:
     """Psi: softmax of the [CLS] query (token 0) over all keys, head-averaged, patch
     entries only. q, k [N, L, H, D] -> [N, L - num_prefix]."""
     scale = 1.0 / math.sqrt(q.shape[-1])
-    logits = jnp.einsum("nhd,nkhd->nhk", q[:, 0] * scale, k)
+    logits = jnp.einsum("nhd,nkhd->nhk", q[:, 0] * jnp.asarray(scale, q.dtype), k,
+                        preferred_element_type=jnp.float32)
     return jax.nn.softmax(logits, axis=-1).mean(axis=1)[:, num_prefix:]
 
 
 def dino_forward(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
-    """DINOv2 forward on normalised images.
+    """images [N, 3, H, W] (normalised) -> (x_norm_patchtokens [N, h*w, C] float32,
+    saliency Psi [N, h*w] float32); see `dino_tokens`."""
+    x, num_prefix, saliency = dino_tokens(p, images, config)
+    return x[:, num_prefix:], saliency
 
-    images [N, 3, H, W] -> (x_norm_patchtokens [N, h*w, C], saliency Psi [N, h*w])."""
+
+def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
+    """DINOv2 forward on normalised images, its blocks in `config.compute_dtype` (the
+    residual stream in float32, as under torch's autocast).
+
+    images [N, 3, H, W] -> (every token after the final norm [N, 1 + R + h*w, C] float32
+    ([CLS], R registers, patches), the prefix length 1 + R, saliency Psi [N, h*w] float32).
+    The final norm is applied in place: the aggregator overwrites the prefix with its own
+    camera and register tokens in the same buffer."""
     dino = config.dino
+    dtype = config.compute_dtype
     ps = config.patch_size
     n, _, hh, ww = images.shape
     h, w = hh // ps, ww // ps
     eps = dino.layer_norm_eps
 
-    x = patchify(p["patch_embed"]["proj"], images, ps)
-    cls = jnp.broadcast_to(p["cls_token"], (n, 1, x.shape[-1]))
+    x = patchify(p["patch_embed"]["proj"], images.astype(dtype), ps).astype(jnp.float32)
+    cls = jnp.broadcast_to(p["cls_token"].astype(jnp.float32), (n, 1, x.shape[-1]))
     x = jnp.concatenate([cls, x], axis=1)
-    x = x + interpolate_pos_embed(p["pos_embed"], h, w, dino.interpolate_offset)
-    regs = jnp.broadcast_to(p["register_tokens"], (n,) + p["register_tokens"].shape[1:])
+    x = x + interpolate_pos_embed(p["pos_embed"].astype(jnp.float32), h, w, dino.interpolate_offset)
+    regs = jnp.broadcast_to(p["register_tokens"].astype(jnp.float32), (n,) + p["register_tokens"].shape[1:])
     x = jnp.concatenate([x[:, :1], regs, x[:, 1:]], axis=1)
     num_prefix = 1 + regs.shape[1]
 
     depth = dino.depth
     if depth > 1:
-        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps)
+        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype)
 
     # The last block is unrolled so that its q and k also give the saliency.
     blk = p["blocks"][str(depth - 1)]
-    hidden = layers.layer_norm(blk["norm1"], x, eps)
-    q, k, v = layers.attention_qkv(blk["attn"], hidden, dino.num_heads)
-    saliency = cls_saliency(q, k, num_prefix)
-    attn = layers.linear(blk["attn"]["proj"], layers.attention(q, k, v).reshape(x.shape))
-    x = x + layers.layer_scale(blk.get("ls1"), attn)
-    x = x + layers.layer_scale(blk.get("ls2"), layers.mlp(blk["mlp"], layers.layer_norm(blk["norm2"], x, eps)))
+    # The last block is written out so that its q and k also give the saliency; whole
+    # images per chunk, like every block.
+    def last_block(xc):
+        q, k, v = layers.qkv_fn(blk, dino.num_heads, eps, dtype)(xc)
+        o = layers.linear(blk["attn"]["proj"], attention(q, k, v).reshape(xc.shape[:2] + (xc.shape[-1],)))
+        return layers.finish_rows(blk, xc, o, eps, dtype), cls_saliency(q, k, num_prefix)
 
-    tokens = layers.layer_norm(p["norm"], x, eps)[:, num_prefix:]
-    chex.assert_shape(tokens, (n, h * w, config.embed_dim))
+    hidden = blk["mlp"]["fc1"]["kernel"].shape[-1]
+    x, saliency = map_tokens(last_block, (x,), axis=0, bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
+
+    c = x.shape[-1]
+    x = update_tokens(lambda xc: layers.layer_norm(p["norm"], xc, eps, jnp.float32), x.reshape(1, -1, c),
+                      bytes_per_row=c * 4 * 2).reshape(x.shape)
+    chex.assert_shape(x, (n, num_prefix + h * w, config.embed_dim))
     chex.assert_shape(saliency, (n, h * w))
-    return tokens, saliency
+    return x, num_prefix, saliency
 
 
 def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] -> (patch tokens [B*S, h*w, C], Psi [B, S, h*w])."""
+    x, num_prefix, saliency = patch_embed_tokens(p, images, config)
+    return x[:, num_prefix:], saliency
+
+
+def patch_embed_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
+    """images [B, S, 3, H, W] in [0, 1] -> (DINO tokens [B*S, 1 + R + h*w, C] with the
+    patch tokens after the prefix of 1 + R, the prefix length, Psi [B, S, h*w])."""
     b, s, c, hh, ww = images.shape
     x = (images - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
-    tokens, saliency = dino_forward(p, x.reshape(b * s, c, hh, ww), config)
-    return tokens, saliency.reshape(b, s, -1)
+    tokens, num_prefix, saliency = dino_tokens(p, x.reshape(b * s, c, hh, ww), config)
+    return tokens, num_prefix, saliency.reshape(b, s, -1)

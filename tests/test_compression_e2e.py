@@ -3,6 +3,7 @@
 per input shape and returns finite outputs."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -51,3 +52,43 @@ def test_every_preset_compiles_once_and_is_finite(tiny, golden, dense_out, name)
     assert not np.allclose(a["depth"], b["depth"])
     # compression changes the result, but not beyond recognition on this tiny model
     assert not np.array_equal(a["pose_enc"], dense_out["pose_enc"])
+
+
+def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
+    # The aggregator runs each band as one lax.scan (the band's match computed at its first
+    # step and carried); the same layers one by one through `global_block` (checked against
+    # the float64 reference of the method in test_compression_block.py) must agree.
+    from rvggt_jax import compression, layers
+    from rvggt_jax.aggregator import aggregator_forward, layer_groups, special_tokens
+    from rvggt_jax.patch_embed import patch_embed
+
+    params, config = tiny
+    cfg = config.with_compression("regime")
+    images = golden["images"]
+    b, s, _, hh, ww = images.shape
+    h, w = hh // 14, ww // 14
+    assert layer_groups(cfg, s, (h, w)) == (tuple(range(10)), (10, 11, 12, 13), (14, 15, 16, 17),
+                                            tuple(range(18, 24)))
+
+    def loop(p, images):
+        tokens, sal = patch_embed(p["patch_embed"], images, cfg)
+        x = jnp.concatenate([special_tokens(p["camera_token"], b, s), special_tokens(p["register_token"], b, s),
+                             tokens], axis=1)
+        n, num, c = x.shape
+        pos = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(h, w, 5))[None], cfg.head_dim,
+                                               cfg.rope_freq)
+        gpos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), pos)
+        state = compression.init_state(cfg, sal, s, (h, w))
+        out = []
+        for i in range(cfg.depth):
+            x = layers.block(p["frame_blocks"][str(i)], x.reshape(b * s, num, c), cfg.num_heads, pos, cfg.rope_freq)
+            f = x.reshape(b, s, num, c)
+            x, state = compression.global_block(p["global_blocks"][str(i)], x.reshape(b, s * num, c), gpos, i, cfg,
+                                                state)
+            out.append(jnp.concatenate([f, x.reshape(b, s, num, c)], axis=-1))
+        return out
+
+    ref = jax.jit(loop)(params["aggregator"], images)
+    scanned, _, _ = jax.jit(lambda p, x: aggregator_forward(p, x, cfg, range(24)))(params["aggregator"], images)
+    for i in range(cfg.depth):
+        assert rel_err(scanned[i].array(), ref[i]) <= 1e-5, i

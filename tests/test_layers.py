@@ -1,4 +1,5 @@
-"""Attention building block: the blocked (cache-sized) evaluation equals the direct one."""
+"""Building blocks: the float64 attention reference shared by the attention tests; mixed
+precision of the linear / norm / MLP pieces; row-chunked per-token work."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rvggt_jax import layers
+from rvggt_jax import chunks, layers
 
 
 def _reference(q, k, v, bias=None):
@@ -22,52 +23,62 @@ def _reference(q, k, v, bias=None):
     return ((p / p.sum(-1, keepdims=True)) @ v).transpose(0, 2, 1, 3)
 
 
-@pytest.mark.parametrize("block_bytes", [None, 4096, 40 * 4 * 3, 1])
-@pytest.mark.parametrize("with_bias", [False, True])
-def test_blocked_attention_equals_reference(block_bytes, with_bias):
-    rng = np.random.default_rng(0)
-    b, nq, nk, h, d = 2, 37, 45, 3, 8  # odd sizes: blocks are padded
-    q = rng.standard_normal((b, nq, h, d)).astype(np.float32)
-    k = rng.standard_normal((b, nk, h, d)).astype(np.float32)
-    v = rng.standard_normal((b, nk, h, 5)).astype(np.float32)
-    bias = rng.standard_normal((b, 1, 1, nk)).astype(np.float32) if with_bias else None
-    out = jax.jit(lambda q, k, v, bias: layers.attention(q, k, v, bias, block_bytes=block_bytes))(q, k, v, bias)
-    assert out.shape == (b, nq, h, 5)
-    np.testing.assert_allclose(np.asarray(out), _reference(q, k, v, bias), rtol=1e-5, atol=1e-5)
 
 
-def test_per_query_bias_is_honoured_even_when_blocks_are_small():
-    rng = np.random.default_rng(1)
-    q, k, v = (rng.standard_normal((1, 20, 2, 4)).astype(np.float32) for _ in range(3))
-    bias = rng.standard_normal((1, 2, 20, 20)).astype(np.float32)
-    out = layers.attention(q, k, v, bias, block_bytes=64)
-    np.testing.assert_allclose(np.asarray(out), _reference(q, k, v, bias), rtol=1e-5, atol=1e-5)
+def test_linear_computes_in_the_input_dtype_with_float32_accumulation():
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((4, 300)).astype(np.float32)
+    p = {"kernel": rng.standard_normal((300, 7)).astype(np.float32), "bias": rng.standard_normal(7).astype(np.float32)}
+    y32 = layers.linear(p, jnp.asarray(x))
+    assert y32.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(y32), x @ p["kernel"] + p["bias"], rtol=1e-5, atol=1e-4)
+    y16 = layers.linear(p, jnp.asarray(x, jnp.bfloat16))
+    assert y16.dtype == jnp.bfloat16
+    # bf16 operands (8-bit mantissa), float32 sums: ~1e-2 relative, not the ~1e-1 of bf16 sums
+    ref = np.asarray(jnp.asarray(x, jnp.bfloat16), np.float64) @ np.asarray(jnp.asarray(p["kernel"], jnp.bfloat16),
+                                                                            np.float64) + p["bias"]
+    assert np.abs(np.asarray(y16, np.float64) - ref).max() <= 1e-2 * np.abs(ref).max()
 
 
-@pytest.mark.parametrize("nq, nk, budget", [(3152, 3152, 24 * 2**20), (100, 100, 10**9), (1000, 77, 4096), (5, 10**6, 1)])
-def test_query_blocks_cover_all_rows_within_budget(nq, nk, budget):
-    n, rows = layers.query_blocks(nq, nk, 4, budget)
-    assert n * rows >= nq > (n - 1) * rows  # every row, no empty block
-    if n > 1:
-        assert rows % 8 == 0 and n * rows - nq < 8 * n
-        # one block's logits stay within the budget, up to the 8-row rounding
-        assert (rows - 7) * nk * 4 <= max(budget, 8 * nk * 4)
-    else:
-        assert rows == nq
+def test_layer_norm_statistics_in_float32_for_bfloat16_rows():
+    # A wide row with a large mean: bfloat16 statistics would lose the small deviations.
+    x = (1000.0 + np.linspace(-1, 1, 1024)).astype(np.float32)[None]
+    out = layers.layer_norm(None, jnp.asarray(x, jnp.bfloat16), dtype=jnp.float32)
+    xb = np.asarray(jnp.asarray(x, jnp.bfloat16), np.float64)
+    ref = (xb - xb.mean()) / np.sqrt(xb.var() + 1e-5)
+    np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-4, atol=1e-4)
+    assert layers.layer_norm(None, jnp.asarray(x, jnp.bfloat16)).dtype == jnp.bfloat16
 
 
-def test_global_attention_size_uses_few_large_blocks():
-    # The benchmark shape (16 frames x 197 tokens): 2 blocks of 1576 rows per head.
-    assert layers.query_blocks(3152, 3152) == (2, 1576)
+@pytest.mark.parametrize("rows", [1, 7, 8, 40, 100])
+def test_token_chunks_equal_one_pass(rows):
+    rng = np.random.default_rng(4)
+    x = jnp.asarray(rng.standard_normal((2, 100, 6)).astype(np.float32))
+    y = jnp.asarray(rng.standard_normal((1, 100, 6)).astype(np.float32))  # broadcast over the batch
+    w = jnp.asarray(rng.standard_normal((6, 6)).astype(np.float32))
+
+    def fn(t, u):
+        return t + jnp.tanh(t @ w) * u
+
+    def pair(t, u):
+        return {"a": fn(t, u), "b": (t * u)[..., :2].astype(jnp.bfloat16)}
+
+    ref = pair(x, y)
+    out = jax.jit(lambda x, y: chunks.map_tokens(pair, (x, y), rows=rows))(x, y)
+    np.testing.assert_allclose(np.asarray(out["a"]), np.asarray(ref["a"]), rtol=1e-6, atol=1e-6)
+    assert out["b"].dtype == jnp.bfloat16 and out["b"].shape == (2, 100, 2)
+    np.testing.assert_array_equal(np.asarray(out["b"], np.float32), np.asarray(ref["b"], np.float32))
+    upd = jax.jit(lambda x, y: chunks.update_tokens(fn, x, (y,), rows=rows))(x, y)
+    np.testing.assert_allclose(np.asarray(upd), np.asarray(fn(x, y)), rtol=1e-6, atol=1e-6)
 
 
-def test_attention_is_over_tokens_not_heads():
-    # Permuting the heads permutes the output heads; permuting keys (with values) changes nothing.
-    rng = np.random.default_rng(2)
-    q, k, v = (jnp.asarray(rng.standard_normal((1, 30, 4, 8)).astype(np.float32)) for _ in range(3))
-    out = layers.attention(q, k, v, block_bytes=256)
-    perm = np.array([2, 0, 3, 1])
-    np.testing.assert_allclose(layers.attention(q[:, :, perm], k[:, :, perm], v[:, :, perm], block_bytes=256),
-                               out[:, :, perm], rtol=1e-5, atol=1e-6)
-    keys = rng.permutation(30)
-    np.testing.assert_allclose(layers.attention(q, k[:, keys], v[:, keys], block_bytes=256), out, rtol=1e-5, atol=1e-6)
+def test_row_chunk_size():
+    assert chunks.row_chunks(1000, 16, 160) == 8  # at least 8 rows
+    assert chunks.row_chunks(1000, 4, 400) == 96  # a multiple of 8 under the budget
+    assert chunks.row_chunks(50, 4, 400) == 50  # everything fits: one chunk
+
+
+def test_zeros_after_are_zeros_whatever_the_dependency_holds():
+    for dep in (np.array([np.nan, 1.0]), np.array([np.inf]), np.array([-3.0])):
+        z = jax.jit(lambda d: chunks.zeros_after((3, 2), jnp.bfloat16, d))(dep)
+        assert z.dtype == jnp.bfloat16 and not np.any(np.asarray(z, np.float32))

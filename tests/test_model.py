@@ -64,15 +64,22 @@ def test_track_head(outputs, golden, key):
 
 
 def test_cache_blocking_leaves_every_output_at_parity(tiny, golden, monkeypatch):
-    # The fixture is too small for the speed paths to engage by default: force blocked
-    # attention (every attention of DINO, frame and global blocks, in padded query blocks)
-    # and one frame per DPT group, and hold the whole model to the same 1e-4.
-    from rvggt_jax import layers
+    # The fixture is too small for the long-sequence paths to engage by default: force
+    # blocked attention (every attention of DINO, frame and global blocks, in padded query
+    # blocks), blocks in chunks written in place (frame and DINO blocks 2 images at a time
+    # with a tail of 1; global blocks in query chunks of 184 rows over 279 tokens, after
+    # K and V), and DPT groups of 2 frames over 3 (the last group overlaps the one before),
+    # and hold the whole model to the same 1e-4.
+    from rvggt_jax import attention, chunks
     from rvggt_jax.heads import dpt
 
-    monkeypatch.setattr(layers, "LOGITS_BLOCK_BYTES", 4096)
-    monkeypatch.setattr(dpt, "GROUP_PIXELS", 1)
-    assert layers.query_blocks(3 * 93, 3 * 93)[0] > 1
+    monkeypatch.setattr(attention, "LOGITS_BLOCK_BYTES", 4096)
+    monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2 * 93 * 4 * 128)
+    monkeypatch.setattr(dpt, "GROUP_PIXELS", 2 * 112 * 154)
+    assert attention.query_blocks(3 * 93, 3 * 93)[0] > 1
+    assert chunks.row_chunks(3, 93 * 4 * 128, multiple=1) == 2  # frames per chunk
+    assert chunks.row_chunks(3 * 93, 4 * 128) == 184 and (3 * 93) % 184  # global query rows
+    assert dpt.frames_per_group(3, (112, 154)) == 2
     params, config = tiny
     cfg = config.with_outputs(layers=(4, 23))
     out = jax.jit(lambda p, x, c: rvggt_forward(p, x, c))(params, golden["images"], cfg)
@@ -121,7 +128,7 @@ def test_keeps_only_the_layers_the_heads_read(tiny, golden):
     outs, _, _ = jax.jit(lambda p, x: aggregator_forward(p, x, config, (4, 23)))(
         params["aggregator"], golden["images"])
     assert sorted(outs) == [4, 23]
-    assert rel_err(outs[4], golden["aggregated_04"]) <= TOL
+    assert rel_err(outs[4].array(), golden["aggregated_04"]) <= TOL
 
 
 @pytest.mark.parametrize(

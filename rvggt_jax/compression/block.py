@@ -25,8 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax import layers
-from rvggt_jax.compression import attention as attn_lib
+from rvggt_jax import chunks, layers
+from rvggt_jax.attention import attention, log_sizes
 from rvggt_jax.compression import kv as kv_lib
 from rvggt_jax.compression import merge as merge_lib
 from rvggt_jax.compression.partition import kv_static_keep, partition, saliency_protect_count, stride_protected
@@ -109,73 +109,103 @@ def init_state(config, saliency: jax.Array | None, frames: int, grid_hw: tuple[i
     return state
 
 
+def empty_match(plan: LayerPlan, batch: int) -> dict[str, jax.Array]:
+    """A match of the plan's shapes filled with zeros (the initial carry of a band's scan)."""
+    return {"group": jnp.zeros((batch, plan.tokens), jnp.int32),
+            "sizes": jnp.zeros((batch, plan.n_query), jnp.float32),
+            "unm_pos": jnp.zeros((batch, plan.n_unm), jnp.int32)}
+
+
 def plan_for(config, layer: int, geom: Geometry) -> LayerPlan:
     return layer_plan(config.compression, layer, geom.frames, geom.h, geom.w, geom.num_special)
 
 
-def _residual_mlp(p, x: jax.Array, attn_out: jax.Array) -> jax.Array:
-    x = x + layers.layer_scale(p.get("ls1"), attn_out)
-    return x + layers.layer_scale(p.get("ls2"), layers.mlp(p["mlp"], layers.layer_norm(p["norm2"], x)))
-
-
-def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State
-                 ) -> tuple[jax.Array, State]:
+def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State,
+                 fresh: jax.Array | None = None) -> tuple[jax.Array, State]:
     """One global block under the configured compression.
 
-    p_block: one upstream Block's params; x [B, N, C], N = S*P; pos [1, N, 2] int32 RoPE
-    positions; layer: the global layer index (Python int). Returns (x [B, N, C], state)."""
+    p_block: one upstream Block's params; x [B, N, C] (the float32 residual stream),
+    N = S*P; pos: the sequence's RoPE tables [1, N, 1, D] (or integer positions
+    [1, N, 2]); layer: the global layer index (Python int). Attention and MLP run in
+    `config.compute_dtype`. Returns (x [B, N, C], state), the state with this layer's
+    match (and K/V slots) cached when its plan stores them.
+
+    `fresh` (a traced bool, for a `lax.scan` over a band): a layer whose plan reuses the
+    band's match computes it instead when `fresh` is true (the band's first layer), and
+    returns it in the state for the next step."""
     cc = config.compression
     geom: Geometry = state["geometry"]
     plan = plan_for(config, layer, geom)
     b, n, c = x.shape
     if n != plan.tokens:
         raise ValueError(f"global block {layer}: {n} tokens but the state describes {plan.tokens}")
-    heads, freq = config.num_heads, config.rope_freq
+    heads, freq, dtype = config.num_heads, config.rope_freq, config.compute_dtype
     d = c // heads
 
     if plan.kind == "dense":
         _log(layer=layer, kind="dense", queries=n, kv=n, head_dim=d)
-        return layers.block(p_block, x, heads, pos, freq), state
+        return layers.block(p_block, x, heads, pos, freq, dtype=dtype), state
     if plan.kind == "frame":
         L = geom.per_frame
         _log(layer=layer, kind="frame", queries=L, kv=L, head_dim=d)
-        out = layers.block(p_block, x.reshape(b * geom.frames, L, c), heads, pos[:, :L], freq)
+        out = layers.block(p_block, x.reshape(b * geom.frames, L, c), heads, pos[:, :L], freq, dtype=dtype)
         return out.reshape(b, n, c), state
 
     state = dict(state)
     part = partition(geom.frames, geom.h, geom.w, geom.num_special, cc.dst_seed)
-    xn = layers.layer_norm(p_block["norm1"], x)
-    q, k, v = layers.attention_qkv(p_block["attn"], xn, heads, pos, freq)  # [B, N, H, d]
+    if not isinstance(pos, layers.RopeTables):
+        pos = layers.RopeTables.from_positions(pos, d, freq)
     protected = state.get("protected")
 
     if plan.kind == "kv":
+        # K and V only of the kept tokens (projection, qk-norm and RoPE are per token, so
+        # selecting before projecting is exact), then Q chunk by chunk, each chunk
+        # attending and finishing its rows: no full-sequence Q, K or V.
         fixed = fixed_kv_index(cc, layer, geom.frames, geom.h, geom.w, geom.num_special)
-        kk, vv = jnp.take(k, fixed, axis=1, mode="clip"), jnp.take(v, fixed, axis=1, mode="clip")
+        sel = jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size))
         log_g = None
         if plan.n_dyn:
             idx, ok = kv_lib.dynamic_slots(plan, part, cc, None, protected, geom.num_special, geom.h, geom.w)
-            kk = jnp.concatenate([kk, _take_rows(k, idx)], axis=1)
-            vv = jnp.concatenate([vv, _take_rows(v, idx)], axis=1)
+            sel = jnp.concatenate([sel, idx], axis=1)
             valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
-            log_g = attn_lib.log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
-        out = attn_lib.size_biased_attention(q, kk, vv, log_g, cc.head_pad_multiple, cc.query_chunk)
-        _log(layer=layer, kind="kv", queries=q.shape[1], kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
-        out = layers.linear(p_block["attn"]["proj"], out.reshape(b, n, c))
-        return _residual_mlp(p_block, x, out), state
+            log_g = log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
+        kk, vv = _rows_kv(p_block, x, sel, pos, heads, dtype)
+        _log(layer=layer, kind="kv", queries=n, kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
+        q_of = layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, "q")
+
+        def rows(xc, cos, sin):
+            o = attention(q_of(xc, cos, sin)[0], kk, vv, log_g).reshape(xc.shape)
+            return layers.finish_rows(p_block, xc, layers.linear(p_block["attn"]["proj"], o), dtype=dtype)
+
+        hidden = p_block["mlp"]["fc1"]["kernel"].shape[-1]
+        return chunks.update_tokens(rows, x, (pos.cos, pos.sin), bytes_per_row=b * hidden * 4), state
 
     # ---- merging layer -------------------------------------------------------------------
-    if plan.match == "reuse":
-        match = state["match"][plan.match_key]
-    else:
-        metric = x if plan.metric == "input" else xn
+    def compute():
+        # the norm1 metric is applied to the rows the matching gathers, never to all of x
+        norm1 = None if plan.metric == "input" else (lambda rows: layers.layer_norm(p_block["norm1"], rows, dtype=dtype))
         prot_src = None if protected is None else jnp.take(protected, part.src_pos, axis=1, mode="clip")
-        match = merge_lib.compute_match(metric, prot_src, part, plan, cc.match_chunk)
+        return merge_lib.compute_match(x, prot_src, part, plan, cc.match_chunk, dtype, norm1)
+
+    if plan.match == "reuse":
+        if plan.match_key not in state["match"]:
+            raise ValueError(f"global block {layer} reuses the match of {plan.match_key}, which is not cached")
+        match = state["match"][plan.match_key]
+        if fresh is not None:
+            match = jax.lax.cond(fresh, compute, lambda: match)
+            state["match"] = {**state["match"], plan.match_key: match}
+            state["kv"] = {k: v for k, v in state["kv"].items() if not k.startswith(f"{plan.match_key}|")}
+    else:
+        match = compute()
         if plan.match_key is not None:
             state["match"] = {**state["match"], plan.match_key: match}
 
-    qkv = jnp.concatenate([q, k, v], axis=-1).reshape(b, n, 3 * c)
-    merged = merge_lib.merge(qkv, match, plan.n_query).reshape(b, plan.n_query, heads, 3 * d)
-    qm, km, vm = merged[..., :d], merged[..., d:2 * d], merged[..., 2 * d:]
+    # Group means of q, k, v (after qk-norm and RoPE), summed chunk by chunk as they are
+    # projected: no full-sequence Q, K or V. One pass each, so that one float32 sum
+    # [B, N_m, C] exists at a time (the norm is recomputed, a small price).
+    qm, km, vm = (merge_lib.merge_map(layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, part),
+                                      (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2)[0]
+                  for part in "qkv")
     sizes = match["sizes"]
 
     if plan.kv_mode == "all":
@@ -197,8 +227,9 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     if plan.n_dup:
         # The authors' artefact: the protected tokens once more, un-merged, size 1.
         ppos = state["protected_pos"]
-        kk = jnp.concatenate([kk, _take_rows(k, ppos)], axis=1)
-        vv = jnp.concatenate([vv, _take_rows(v, ppos)], axis=1)
+        dk, dv = _rows_kv(p_block, x, ppos, pos, heads, dtype)
+        kk = jnp.concatenate([kk, dk], axis=1)
+        vv = jnp.concatenate([vv, dv], axis=1)
         g = jnp.concatenate([g, jnp.ones(ppos.shape, jnp.float32)], axis=1)
         dup_ok = jnp.ones(ppos.shape, bool)
         if plan.kv_mode == "select" and not (cc.kv_protect_saliency and cc.protect == "saliency"):
@@ -213,16 +244,30 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     if plan.size_column:
         if not cc.size_bias:
             g = jnp.ones_like(g)
-        log_g = attn_lib.log_sizes(g, valid if plan.masked else None)
-    out = attn_lib.size_biased_attention(qm, kk, vv, log_g, cc.head_pad_multiple, cc.query_chunk)
+        log_g = log_sizes(g, valid if plan.masked else None)
+    out = attention(qm, kk, vv, log_g)
     _log(layer=layer, kind="merge", queries=qm.shape[1], kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
-    out = layers.linear(p_block["attn"]["proj"], out.reshape(b, plan.n_query, c))
-    return _residual_mlp(p_block, x, merge_lib.unmerge(out, match)), state
+    # the output projection on the N_m merged rows, then every token takes its group's row
+    proj = p_block["attn"]["proj"]
+    out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, plan.n_query, c),),
+                            bytes_per_row=b * c * 4 * 4)
+    x = layers.finish_block(p_block, x, lambda gc: merge_lib.unmerge(out, {"group": gc}), (match["group"],),
+                            dtype=dtype)
+    return x, state
+
+
+def _rows_kv(p_block, x: jax.Array, idx: jax.Array, pos: layers.RopeTables, heads: int, dtype
+             ) -> tuple[jax.Array, jax.Array]:
+    """K and V [B, M, H, d] of the tokens idx [B, M] of x [B, N, C] (their norm1,
+    projection, qk-norm and RoPE at their own positions)."""
+    rows = _take_rows(x, idx)
+    tables = layers.RopeTables(*(jnp.take(t[0], idx, axis=0, mode="clip") for t in (pos.cos, pos.sin)))
+    return layers.normed_qkv(p_block, rows, heads, tables, dtype=dtype, parts="kv")
 
 
 def _take_rows(x: jax.Array, idx: jax.Array) -> jax.Array:
     """x [B, N, ...], idx [B, M] -> [B, M, ...]."""
-    return jnp.take_along_axis(x, idx.reshape(idx.shape + (1,) * (x.ndim - 2)), axis=1, mode="promise_in_bounds")
+    return chunks.take_along(x, idx, axis=1)
 
 
 def _folded_dim(d: int, log_g, cc) -> int:

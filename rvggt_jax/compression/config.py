@@ -117,10 +117,10 @@ class CompressionConfig:
       dense_layers       the upstream block, untouched.
 
     Attention
-      head_pad_multiple  the folded head dimension d+1 is zero-padded up to a multiple of
-                         this (16: 64 -> 80, the GPU flash size; 1: no padding).
-      query_chunk        queries per attention chunk (memory and cache locality); 0 =
-                         one chunk.
+      head_pad_multiple  for the cost model: the folded head dimension d+1 that a flash
+                         kernel sees, rounded up to a multiple of this (8 for cuDNN;
+                         1: unpadded). The attention op (`rvggt_jax.attention`) pads as
+                         its kernel needs; on CPU the bias is added to the logits.
       match_chunk        src tokens per similarity chunk; 0 = one chunk.
     """
 
@@ -146,7 +146,6 @@ class CompressionConfig:
     frame_layers: tuple[int, ...] = ()
     dense_layers: tuple[int, ...] = ()
     head_pad_multiple: int = 1
-    query_chunk: int = 256
     match_chunk: int = 1024
 
     def __post_init__(self):

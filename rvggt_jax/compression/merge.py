@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvggt_jax import chunks
 from rvggt_jax.compression.partition import Partition
 from rvggt_jax.compression.plan import LayerPlan
 
@@ -28,25 +29,57 @@ def normalize(x: jax.Array, eps: float = 1e-6) -> jax.Array:
     return x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), eps * eps))
 
 
-def best_match(a: jax.Array, b: jax.Array, chunk: int) -> tuple[jax.Array, jax.Array]:
-    """For unit rows a [..., Na, C] and b [..., Nb, C]: (max_j a.b_j, argmax_j) over b,
-    each [..., Na]; evaluated in chunks of `chunk` rows of a (0: one chunk)."""
-    def one(a_c):
-        sims = jnp.einsum("...ic,...jc->...ij", a_c, b)
+# Bytes of one block of float32 cosine similarities [rows, N_dst] (the similarity matrix
+# of 1000 frames is 770K x 272K).
+SIMILARITY_BLOCK_BYTES = 128 * 2**20
+
+
+def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chunk: int = 0,
+               dtype=None, transform=None) -> tuple[jax.Array, jax.Array]:
+    """Cosine matching of src to dst tokens, in blocks.
+
+    metric [B, N, C] (features, not yet normalised); src_idx [G, Na] and dst_idx [G, Nb]
+    static token positions in G groups (G = 1: every src against every dst; G = S - 1:
+    each frame's src against its own dst). Returns (max cosine, argmax as an index into
+    the group's dst_idx), each [B, G, Na]. Unit rows are made per block (normalised in
+    float32, stored in `dtype`, default the metric's); similarities accumulate in float32,
+    at most SIMILARITY_BLOCK_BYTES of them (and at most `chunk` src rows, when > 0) at a
+    time. The whole normalised metric and the [Na, Nb] similarities never exist.
+    `transform` (per token, e.g. the block's norm1) is applied to gathered rows first."""
+    dtype = metric.dtype if dtype is None else dtype
+
+    def _unit(rows, dtype):
+        return normalize((rows if transform is None else transform(rows)).astype(jnp.float32)).astype(dtype)
+    b = metric.shape[0]
+    g, na = src_idx.shape
+    nb = dst_idx.shape[1]
+    src_idx, dst_idx = jnp.asarray(src_idx, jnp.int32), jnp.asarray(dst_idx, jnp.int32)
+
+    def best(a, d):
+        sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
         return jnp.max(sims, axis=-1), jnp.argmax(sims, axis=-1).astype(jnp.int32)
 
-    na = a.shape[-2]
-    if chunk <= 0 or na <= chunk:
-        return one(a)
-    n_chunks = -(-na // chunk)
-    pad = n_chunks * chunk - na
-    a_p = jnp.pad(a, [(0, 0)] * (a.ndim - 2) + [(0, pad), (0, 0)])
-    a_p = a_p.reshape(a.shape[:-2] + (n_chunks, chunk, a.shape[-1]))
-    a_p = jnp.moveaxis(a_p, -3, 0)
-    best, arg = jax.lax.map(one, a_p)  # [n_chunks, ..., chunk]
-    best = jnp.moveaxis(best, 0, -2).reshape(a.shape[:-2] + (n_chunks * chunk,))[..., :na]
-    arg = jnp.moveaxis(arg, 0, -2).reshape(a.shape[:-2] + (n_chunks * chunk,))[..., :na]
-    return best, arg
+    if g == 1:
+        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C]
+        rows = chunks.row_chunks(na, b * nb * 4, SIMILARITY_BLOCK_BYTES)
+        rows = min(rows, chunk) if chunk > 0 else rows
+
+        def one(idx):  # idx [1, rows]
+            return best(_unit(chunks.take(metric, idx[0], axis=1), dtype), dst)
+
+        score, arg = chunks.map_tokens(one, (src_idx,), axis=1, rows=rows, dep=metric)
+        return score[:, None], arg[:, None]
+
+    frames = chunks.row_chunks(g, b * na * nb * 4, SIMILARITY_BLOCK_BYTES)
+
+    def per_frames(si, di):  # [F, Na], [F, Nb] -> [F, B, Na] each
+        f = si.shape[0]
+        a = _unit(chunks.take(metric, si.reshape(-1), axis=1), dtype).reshape(b, f, na, -1)
+        d = _unit(chunks.take(metric, di.reshape(-1), axis=1), dtype).reshape(b, f, nb, -1)
+        return jax.tree.map(lambda t: jnp.moveaxis(t, 0, 1), best(a, d))
+
+    score, arg = chunks.map_tokens(per_frames, (src_idx, dst_idx), axis=0, rows=frames, dep=metric)
+    return jnp.moveaxis(score, 0, 1), jnp.moveaxis(arg, 0, 1)
 
 
 def _inverse_permutation(order: jax.Array) -> jax.Array:
@@ -57,17 +90,17 @@ def _inverse_permutation(order: jax.Array) -> jax.Array:
 
 
 def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Partition, plan: LayerPlan,
-                  chunk: int) -> dict[str, jax.Array]:
+                  chunk: int, dtype=None, transform=None) -> dict[str, jax.Array]:
     """metric [B, N, C] (similarity features), protected_src [B, N_src] bool or None ->
-    the match of this layer's plan (see the module docstring)."""
+    the match of this layer's plan (see the module docstring). The unit rows are
+    normalised in float32 and stored in `dtype` (default: the metric's) block by block;
+    the cosine similarities accumulate in float32 (`best_match`)."""
     b = metric.shape[0]
-    m = normalize(metric)
     n_dst, n_src, r, U = plan.n_dst, plan.n_src, plan.r, plan.n_unm
 
     if plan.scope == "sequence":
-        src = jnp.take(m, part.src_pos, axis=1, mode="clip")
-        dst = jnp.take(m, part.dst_pos, axis=1, mode="clip")
-        score, arg = best_match(src, dst, chunk)  # [B, N_src], arg indexes dst_pos
+        score, arg = best_match(metric, part.src_pos[None], part.dst_pos[None], chunk, dtype, transform)
+        score, arg = score[:, 0], arg[:, 0]  # [B, N_src], arg indexes dst_pos
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
         order = jnp.argsort(-score, axis=-1, stable=True)  # best first
@@ -79,9 +112,8 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Part
         s1, n_src_f = part.src_pos_f.shape
         r_f = plan.r_frame
         u_f = n_src_f - r_f
-        src = jnp.take(m, part.src_pos_f, axis=1, mode="clip")  # [B, S-1, n_src_f, C]
-        dst = jnp.take(m, jnp.asarray(part.dst_pos[part.dst_rank_f]), axis=1, mode="clip")  # [B, S-1, n_dst_f, C]
-        score, arg = best_match(src, dst, chunk)  # [B, S-1, n_src_f], arg local to the frame
+        # [B, S-1, n_src_f], arg local to the frame's dst
+        score, arg = best_match(metric, part.src_pos_f, part.dst_pos[part.dst_rank_f], chunk, dtype, transform)
         arg = jnp.take(jnp.asarray(part.dst_rank_f, jnp.int32), arg + jnp.arange(s1, dtype=jnp.int32)[:, None]
                        * part.dst_rank_f.shape[1], mode="clip")
         if protected_src is not None:
@@ -105,16 +137,50 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Part
 
 
 def merge(x: jax.Array, match: dict[str, jax.Array], n_query: int) -> jax.Array:
-    """x [B, N, F] -> group means [B, N_m, F]."""
-    b, n, f = x.shape
-    ids = (match["group"] + (jnp.arange(b, dtype=jnp.int32) * n_query)[:, None]).reshape(-1)
-    sums = jax.ops.segment_sum(x.reshape(b * n, f), ids, num_segments=b * n_query)
-    return sums.reshape(b, n_query, f) / match["sizes"][..., None]
+    """x [B, N, F] -> group means [B, N_m, F] in x's dtype, summed in float32."""
+    return merge_map(lambda xc: (xc,), (x,), match, n_query, x.shape[-1] * 4)[0]
+
+
+def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, bytes_per_row: int) -> tuple:
+    """Group means of per-token values that are never formed for the whole sequence:
+    `fn(*chunks) -> (values [B, r, ...], ...)` over token chunks of the inputs (axis 1),
+    each chunk added into float32 sums [B, N_m, ...] at its tokens' groups, then divided
+    by the group sizes. Returns the means [B, N_m, ...] in each value's dtype. With `fn`
+    the Q/K/V projection of a block, merging needs no full-sequence Q, K or V."""
+    x0 = inputs[0]
+    b, n = x0.shape[:2]
+    offsets = (jnp.arange(b, dtype=jnp.int32) * n_query)[:, None]
+    rows = chunks.row_chunks(n, b * bytes_per_row)
+    spec = jax.eval_shape(fn, *[chunks.dynamic_slice(t, 0, min(rows, n), 1) for t in inputs])
+    sums = tuple(chunks.zeros_after((b * n_query,) + o.shape[2:], jnp.float32, x0) for o in spec)
+
+    def add(acc, group, *chunk):
+        ids = (group + offsets).reshape(-1)
+        vals = fn(*chunk)
+        return tuple(a.at[ids].add(v.reshape((-1,) + v.shape[2:]).astype(jnp.float32), mode="promise_in_bounds")
+                     for a, v in zip(acc, vals))
+
+    group = match["group"]
+    if rows >= n:
+        sums = add(sums, group, *inputs)
+    else:
+        count = n // rows
+
+        def body(i, acc):
+            return add(acc, chunks.dynamic_slice(group, i * rows, rows, 1),
+                       *[chunks.dynamic_slice(t, i * rows, rows, 1) for t in inputs])
+
+        sums = jax.lax.fori_loop(0, count, body, sums)
+        if count * rows < n:
+            sums = add(sums, group[:, count * rows:], *[t[:, count * rows:] for t in inputs])
+    sizes = match["sizes"].reshape(b * n_query)
+    return tuple((a / sizes.reshape((-1,) + (1,) * (a.ndim - 1))).reshape((b, n_query) + o.shape[2:]).astype(o.dtype)
+                 for a, o in zip(sums, spec))
 
 
 def unmerge(y: jax.Array, match: dict[str, jax.Array]) -> jax.Array:
     """y [B, N_m, F] -> [B, N, F]: every token takes its group's row."""
-    return jnp.take_along_axis(y, match["group"][..., None], axis=1, mode="promise_in_bounds")
+    return chunks.take_along(y, match["group"], axis=1)
 
 
 def identity_match(n: int, batch: int) -> dict[str, jax.Array]:

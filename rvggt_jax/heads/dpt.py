@@ -20,12 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import layers
+from rvggt_jax.chunks import dynamic_slice, zeros_after
 from rvggt_jax.config import DPTHeadConfig, VGGTConfig
 from rvggt_jax.heads.camera import inverse_log_transform
 
 Params = Mapping[str, Any]
 # A list of every aggregator layer's tokens, or a dict {layer index: tokens} holding at
-# least the layers the head reads; each entry is [B, S, P, 2E].
+# least the layers the head reads; each entry is [B, S, P, 2E] (an array or the
+# aggregator's `KeptLayer`, which the head slices per group of frames).
 Aggregated = Sequence[jax.Array] | Mapping[int, jax.Array]
 
 POS_EMBED_RATIO = 0.1
@@ -227,25 +229,47 @@ def frames_per_group(num_frames: int, image_hw: tuple[int, int], group_pixels: i
     return int(min(num_frames, max(1, group_pixels // (image_hw[0] * image_hw[1]))))
 
 
-def map_frame_groups(fn, tokens: Sequence[jax.Array], image_hw: tuple[int, int]):
-    """Run a per-frame `fn(tokens [G, P, C] x 4) -> pytree of [G, ...]` over groups of
-    frames (`lax.map`, padded with zero frames to whole groups).
+def _frame_slice(t, start, count: int) -> jax.Array:
+    """Frames [start, start + count) of a token source: an array [B, S, P, C] or an
+    aggregator `KeptLayer` -> [count, P, C] float32."""
+    if hasattr(t, "frames"):
+        return t.frames(start, count)
+    flat = t.reshape((-1,) + t.shape[2:])
+    # (the barrier keeps a cast on the slice, not hoisted onto the whole input)
+    return jax.lax.optimization_barrier(dynamic_slice(flat, start, count, 0)).astype(jnp.float32)
 
-    tokens: each [B, S, P, C]; returns the pytree with leaves [B, S, ...]."""
+
+def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int]):
+    """Run a per-frame `fn(tokens [G, P, C] x 4) -> pytree of [G, ...]` over groups of G
+    frames (a `fori_loop` writing each group's result in place).
+
+    tokens: each [B, S, P, C] (an array or an aggregator `KeptLayer`); returns the pytree
+    with leaves [B, S, ...]. Nothing is padded or copied: when G does not divide B*S, the
+    last group starts G frames before the end and recomputes a few frames (every op is
+    per frame, so they get the same values)."""
     b, s = tokens[0].shape[:2]
-    chex.assert_rank(list(tokens), 4)
+    chex.assert_equal(len({t.ndim for t in tokens}), 1)
     n = b * s
     g = frames_per_group(n, image_hw)
     groups = -(-n // g)
 
-    frames = [t.reshape((n,) + t.shape[2:]) for t in tokens]
+    def run(i):
+        start = jnp.minimum(i * g, n - g)
+        return start, fn([_frame_slice(t, start, g) for t in tokens])
+
     if groups == 1:
-        out = fn(frames)
+        out = run(0)[1]
     else:
-        padded = [jnp.pad(t, ((0, groups * g - n),) + ((0, 0),) * (t.ndim - 1)).reshape((groups, g) + t.shape[1:])
-                  for t in frames]
-        out = jax.tree.map(lambda o: o.reshape((groups * g,) + o.shape[2:]), jax.lax.map(fn, padded))
-    return jax.tree.map(lambda o: o[:n].reshape((b, s) + o.shape[1:]), out)
+        shapes = jax.eval_shape(lambda: run(0)[1])
+        dep = _frame_slice(tokens[0], 0, 1)  # made when the tokens are, not at the program start
+        init = jax.tree.map(lambda o: zeros_after((n,) + o.shape[1:], o.dtype, dep), shapes)
+
+        def body(i, acc):
+            start, res = run(i)
+            return jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, start, 0), acc, res)
+
+        out = jax.lax.fori_loop(0, groups, body, init)
+    return jax.tree.map(lambda o: o.reshape((b, s) + o.shape[1:]), out)
 
 
 def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[jax.Array]:
@@ -316,6 +340,19 @@ def activate_head(out: jax.Array, activation: str = "norm_exp",
 # ---------------------------------------------------------------------------------------
 
 
+def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start_idx: int, patch_size: int,
+                    activation: str, conf_activation: str):
+    """The dense DPT head on one group of frames: tokens [G, P, 2E] x 4 -> (pred, conf)."""
+    conv2 = params["scratch"]["output_conv2"]
+
+    def per_frames(tokens):
+        x = _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, down_ratio=1)
+        x = conv2d(conv2["2"], jax.nn.relu(conv2d(conv2["0"], x)))
+        return activate_head(x, activation, conf_activation)
+
+    return per_frames
+
+
 def dpt_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int], patch_start_idx: int,
              config: DPTHeadConfig, *, patch_size: int = 14, activation: str = "inv_log",
              conf_activation: str = "expp1") -> tuple[jax.Array, jax.Array]:
@@ -325,23 +362,23 @@ def dpt_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int], 
     index); image_hw: (H, W) of the input images. Returns (pred [B, S, H', W', C-1],
     conf [B, S, H', W']) with C the output_conv2 width and H' = H // patch_size * patch_size
     (= H for the usual multiples of the patch size), W' likewise."""
-    conv2 = params["scratch"]["output_conv2"]
-
-    def per_frames(tokens):
-        x = _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, down_ratio=1)
-        x = conv2d(conv2["2"], jax.nn.relu(conv2d(conv2["0"], x)))
-        return activate_head(x, activation, conf_activation)
-
+    per_frames = _dpt_per_frames(params, config, image_hw, patch_start_idx, patch_size, activation, conf_activation)
     pred, conf = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), image_hw)
     chex.assert_equal_shape_prefix([pred, conf], 4)
     return pred, conf
+
+
+# (activation, conf_activation) of VGGT's two dense heads
+DEPTH_ACTIVATIONS = ("exp", "expp1")
+POINT_ACTIVATIONS = ("inv_log", "expp1")
 
 
 def depth_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int],
                config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
     """VGGT's depth head: (depth [B, S, H, W, 1] = exp, depth_conf [B, S, H, W] = 1 + exp)."""
     return dpt_head(params, aggregated, image_hw, config.patch_start_idx, config.dpt_head,
-                    patch_size=config.patch_size, activation="exp", conf_activation="expp1")
+                    patch_size=config.patch_size, activation=DEPTH_ACTIVATIONS[0],
+                    conf_activation=DEPTH_ACTIVATIONS[1])
 
 
 def point_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int],
@@ -349,4 +386,29 @@ def point_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int]
     """VGGT's point head: (world_points [B, S, H, W, 3] = inv_log, world_points_conf
     [B, S, H, W] = 1 + exp)."""
     return dpt_head(params, aggregated, image_hw, config.patch_start_idx, config.dpt_head,
-                    patch_size=config.patch_size, activation="inv_log", conf_activation="expp1")
+                    patch_size=config.patch_size, activation=POINT_ACTIVATIONS[0],
+                    conf_activation=POINT_ACTIVATIONS[1])
+
+
+def dense_heads(params: Params, aggregated: Aggregated, image_hw: tuple[int, int],
+                config: VGGTConfig) -> dict[str, jax.Array]:
+    """The depth and point heads (those `config` enables) in one loop over groups of
+    frames: {"depth", "depth_conf", "world_points", "world_points_conf"} as
+    `depth_head` / `point_head` return them. One loop reads the kept aggregator layers
+    once; two loops would each need their own copy of them in XLA's plan (17 GB at 1000
+    frames of VGGT-1B in bfloat16)."""
+    heads = {}
+    args = (config.dpt_head, image_hw, config.patch_start_idx, config.patch_size)
+    if config.enable_depth:
+        heads[("depth", "depth_conf")] = _dpt_per_frames(params["depth_head"], *args, *DEPTH_ACTIVATIONS)
+    if config.enable_point:
+        heads[("world_points", "world_points_conf")] = _dpt_per_frames(params["point_head"], *args,
+                                                                       *POINT_ACTIVATIONS)
+    if not heads:
+        return {}
+
+    def per_frames(tokens):
+        return {names: fn(tokens) for names, fn in heads.items()}
+
+    res = map_frame_groups(per_frames, _layers_read(aggregated, config.dpt_head.intermediate_layer_idx), image_hw)
+    return {name: value for names, pair in res.items() for name, value in zip(names, pair)}

@@ -1,0 +1,163 @@
+"""Memory of long sequences, and the CPU speed of RegimeVGGT against dense.
+
+1. XLA's plan (`rvggt_jax.memory_report`: compile only, nothing runs) of the VGGT-1B
+   forward, without the track head, on images of 392 x 518, for S frames, presets and
+   compute dtypes (the aggregator's weights in the compute dtype, as
+   `load_pretrained(..., param_dtype=...)` loads them):
+
+       python benchmarks/bench_memory.py plan --frames 100 300 1000
+
+2. A real run on this CPU of a small layout (24 layers of width 64, one head of 64, DINO
+   depth 1, small heads; random weights) on 168 x 224 images: wall time (median of the
+   repeats, the presets interleaved), the process' peak RSS growth, and the cost model's
+   predicted speedup (`cost_report`, aggregator trunk) next to the measured one:
+
+       python benchmarks/bench_memory.py run --frames 64 128 256
+
+The tables go to stdout (and, with --out, are appended to a markdown file).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import gc
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import rvggt_jax  # noqa: E402
+from rvggt_jax.config import CameraHeadConfig, DinoConfig, DPTHeadConfig, VGGTConfig  # noqa: E402
+
+
+def small_layout() -> VGGTConfig:
+    """24 aggregator layers of width 64 with one head of 64, DINO depth 1, small heads."""
+    return VGGTConfig(embed_dim=64, num_heads=1, dino=DinoConfig(depth=1, num_heads=1),
+                      camera_head=CameraHeadConfig(num_heads=1, trunk_depth=1),
+                      dpt_head=DPTHeadConfig(features=16, out_channels=(8, 16, 32, 32)), enable_track=False)
+
+
+def random_params(config: VGGTConfig, seed: int = 0) -> dict:
+    """A converted-layout tree for `config` with random weights: kernels N(0, 1/fan_in),
+    norm scales 1, biases 0, LayerScale 0.1, tokens N(0, 0.02^2)."""
+    from convert.convert import expected_param_paths, unflatten_params
+
+    rng = np.random.default_rng(seed)
+    flat = {}
+    for path, shape in expected_param_paths(config, skip_track=True).items():
+        name = path[-1]
+        if name == "scale":
+            a = np.ones(shape)
+        elif name == "bias":
+            a = np.zeros(shape)
+        elif name == "gamma":
+            a = np.full(shape, 0.1)
+        elif name == "kernel":
+            a = rng.standard_normal(shape) / np.sqrt(max(1, int(np.prod(shape[:-1]))))
+        else:
+            a = 0.02 * rng.standard_normal(shape)
+        flat[path] = jnp.asarray(a, jnp.float32)
+    return unflatten_params(flat)
+
+
+def plan(args) -> list[str]:
+    cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
+    rows = ["| S | preset | dtype | total GB | arguments GB | outputs GB | temporaries GB | vs dense |",
+            "|---:|---|---|---:|---:|---:|---:|---:|"]
+    for s in args.frames:
+        for dtype in args.dtypes:
+            dense_total = None
+            for preset in args.presets:
+                rep = rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height, args.width, dtype=dtype)
+                if preset == "dense":
+                    dense_total = rep.total_bytes
+                ratio = f"{rep.total_bytes / dense_total:.2f}x" if dense_total else ""
+                row = (f"| {s} | {preset} | {dtype} | {rep.total_bytes / 1e9:.1f} | {rep.argument_bytes / 1e9:.1f} | "
+                       f"{rep.output_bytes / 1e9:.1f} | {rep.temp_bytes / 1e9:.1f} | {ratio} |")
+                print(row, flush=True)
+                rows.append(row)
+                gc.collect()
+    return rows
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def run(args) -> list[str]:
+    base = small_layout()
+    params = random_params(base)
+    rows = ["| S | preset | wall median s | wall min s | speedup (wall) | predicted | measured/predicted | "
+            "peak RSS growth MiB | XLA total MiB |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in args.frames:
+        images = jnp.asarray(np.random.default_rng(s).random((1, s, 3, args.height, args.width)), jnp.float32)
+        fns, times, rss, plans = {}, {p: [] for p in args.presets}, {}, {}
+        for preset in args.presets:
+            cfg = base.with_compression(preset).with_dtype(args.dtype)
+            before = peak_rss_mb()
+            fn = jax.jit(rvggt_jax.rvggt_forward)
+            plans[preset] = fn.lower(params, images, cfg).compile().memory_analysis()
+            jax.block_until_ready(fn(params, images, cfg)["depth"])  # compile + first run
+            rss[preset] = peak_rss_mb() - before
+            fns[preset] = (fn, cfg)
+        for r in range(args.repeats):
+            order = args.presets[r % len(args.presets):] + args.presets[:r % len(args.presets)]
+            for preset in order:
+                fn, cfg = fns[preset]
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(params, images, cfg)["depth"])
+                times[preset].append(time.perf_counter() - t0)
+        dense = statistics.median(times["dense"]) if "dense" in times else None
+        for preset in args.presets:
+            med = statistics.median(times[preset])
+            pred = rvggt_jax.cost_report(base.with_compression(preset), s, args.height, args.width)["predicted_speedup"]
+            speed = dense / med if dense else float("nan")
+            m = plans[preset]
+            total = (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
+                     - m.alias_size_in_bytes) / 2**20
+            row = (f"| {s} | {preset} | {med:.2f} | {min(times[preset]):.2f} | {speed:.2f}x | {pred:.2f}x | "
+                   f"{speed / pred:.2f} | {rss[preset]:.0f} | {total:.0f} |")
+            print(row, flush=True)
+            rows.append(row)
+        del fns
+        gc.collect()
+    return rows
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="mode", required=True)
+    p = sub.add_parser("plan", help="XLA's memory plan of VGGT-1B (compile only)")
+    p.add_argument("--frames", type=int, nargs="+", default=[100, 300, 1000])
+    p.add_argument("--presets", nargs="+", default=["dense", "regime", "fastvggt", "avggt"])
+    p.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"])
+    p.add_argument("--height", type=int, default=392)
+    p.add_argument("--width", type=int, default=518)
+    r = sub.add_parser("run", help="a real CPU run of the small layout")
+    r.add_argument("--frames", type=int, nargs="+", default=[64, 128, 256])
+    r.add_argument("--presets", nargs="+", default=["dense", "regime"])
+    r.add_argument("--dtype", default="float32")
+    r.add_argument("--height", type=int, default=168)
+    r.add_argument("--width", type=int, default=224)
+    r.add_argument("--repeats", type=int, default=3)
+    for q in (p, r):
+        q.add_argument("--out", default=None, help="append the markdown table to this file")
+    args = ap.parse_args(argv)
+    print(f"jax {jax.__version__}, {jax.devices()[0].device_kind}, {jax.device_count()} device(s)", flush=True)
+    rows = plan(args) if args.mode == "plan" else run(args)
+    if args.out:
+        with open(args.out, "a") as f:
+            f.write(f"\n`python benchmarks/bench_memory.py {' '.join(sys.argv[1:] if argv is None else argv)}`\n\n")
+            f.write("\n".join(rows) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,139 @@
+"""Per-token work over chunks of tokens, written in place, and loop buffers XLA cannot
+hoist.
+
+At 1000 frames of VGGT-1B one layer holds 1M tokens: a float32 MLP hidden layer of the
+whole sequence is 17 GB, a projection's float32 product 4 GB. Everything that is per
+token (norms, Q/K/V projections, RoPE, output projection, MLP) therefore runs over chunks
+of TOKEN_CHUNK_BYTES: `map_tokens` stitches new arrays, `update_tokens` rewrites the
+residual stream in place. Short sequences take one chunk and no loop.
+
+Loop outputs and accumulators start from `zeros_after(shape, dtype, dep)`, zeros made
+from a value the loop needs anyway: XLA shares a constant zero buffer between loops and
+schedules it (and one copy per loop) at the start of the program, all alive at once.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+# Bytes of the widest per-token intermediate (the MLP hidden layer [rows, 4C] in float32)
+# computed at once. Per-token work over a long sequence (1000 frames of VGGT-1B: 1M
+# tokens, a 17 GB hidden layer in float32) runs over chunks of tokens of this size,
+# writing into the result in place; below it, in one go.
+TOKEN_CHUNK_BYTES = 128 * 2**20
+
+
+def row_chunks(n_rows: int, bytes_per_row: int, chunk_bytes: int | None = None, multiple: int = 8) -> int:
+    """Rows per chunk for work of `bytes_per_row` bytes per row: a multiple of `multiple`
+    (8 for tokens; 1 for whole sequences), at least `multiple`; `n_rows` when everything
+    fits one chunk."""
+    chunk_bytes = TOKEN_CHUNK_BYTES if chunk_bytes is None else chunk_bytes
+    rows = max(multiple, (chunk_bytes // max(bytes_per_row, 1)) // multiple * multiple)
+    return n_rows if rows >= n_rows else rows
+
+
+def dynamic_slice(x: jax.Array, start, size: int, axis: int) -> jax.Array:
+    """`lax.dynamic_slice_in_dim`, through a uint16 view for 16-bit floats. XLA:CPU has no
+    bfloat16 dynamic slice: it converts the *whole* operand to float32 and, the operand
+    being loop-invariant, hoists that copy out of the loop (a float32 copy of K, V or
+    every kept layer). Slicing the bits is exact and lets only the slice be converted."""
+    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
+        bits = jax.lax.dynamic_slice_in_dim(jax.lax.bitcast_convert_type(x, jnp.uint16), start, size, axis)
+        return jax.lax.bitcast_convert_type(bits, x.dtype)
+    return jax.lax.dynamic_slice_in_dim(x, start, size, axis)
+
+
+def take(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
+    """`jnp.take(x, idx, axis, mode="clip")`, through a uint16 view for 16-bit
+    floats, for the same reason as `dynamic_slice` (XLA:CPU has no bfloat16 gather)."""
+    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
+        bits = jnp.take(jax.lax.bitcast_convert_type(x, jnp.uint16), idx, axis=axis, mode="clip")
+        return jax.lax.bitcast_convert_type(bits, x.dtype)
+    return jnp.take(x, idx, axis=axis, mode="clip")
+
+
+def take_along(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
+    """`jnp.take_along_axis(x, idx, axis)` (indices in bounds, idx broadcast over x's
+    trailing axes), through a uint16 view for 16-bit floats."""
+    idx = idx.reshape(idx.shape + (1,) * (x.ndim - idx.ndim))
+    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
+        bits = jnp.take_along_axis(jax.lax.bitcast_convert_type(x, jnp.uint16), idx, axis=axis,
+                                   mode="promise_in_bounds")
+        return jax.lax.bitcast_convert_type(bits, x.dtype)
+    return jnp.take_along_axis(x, idx, axis=axis, mode="promise_in_bounds")
+
+
+def dynamic_index(x: jax.Array, index, axis: int = 0) -> jax.Array:
+    """`lax.dynamic_index_in_dim(..., keepdims=False)` through `dynamic_slice`."""
+    return jax.lax.squeeze(dynamic_slice(x, index, 1, axis), (axis,))
+
+
+def zeros_after(shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> jax.Array:
+    """Zeros of `shape` made from `dep`, so that the buffer exists only from `dep` on. A
+    constant zero buffer (a loop's output or accumulator) is shared between loops and
+    hoisted to the start of the program by XLA, every one alive at once (gigabytes at
+    1000 frames)."""
+    seed = jax.lax.stop_gradient(dep).reshape(-1)[:1].astype(jnp.float32) * 0.0
+    seed = jnp.where(jnp.isnan(seed), 0.0, seed)  # dep may hold inf or NaN
+    return jnp.broadcast_to(seed.astype(dtype).reshape(()), shape)
+
+
+def _token_slice(t: jax.Array, start, size: int, axis: int) -> jax.Array:
+    return dynamic_slice(t, start, size, axis)
+
+
+def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_per_row: int = 0,
+               dep: jax.Array | None = None, multiple: int = 8):
+    """`fn(*chunks) -> pytree` over chunks of `rows` tokens along `axis` of every input,
+    the results stitched along the same axis (a `fori_loop` writing into zero buffers
+    made after `dep`, default the first input; then the tail). `rows` defaults to
+    `row_chunks(n, bytes_per_row)`; `fn` must be token-independent along `axis`."""
+    n = inputs[0].shape[axis]
+    rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
+    if rows >= n:
+        return fn(*inputs)
+    count = n // rows
+    spec = jax.eval_shape(lambda *c: fn(*c), *[_token_slice(t, 0, rows, axis) for t in inputs])
+
+    def full(o):
+        shape = list(o.shape)
+        shape[axis] = n
+        return zeros_after(tuple(shape), o.dtype, inputs[0] if dep is None else dep)
+
+    out = jax.tree.map(full, spec)
+
+    def body(i, acc):
+        res = fn(*[_token_slice(t, i * rows, rows, axis) for t in inputs])
+        return jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, i * rows, axis), acc, res)
+
+    out = jax.lax.fori_loop(0, count, body, out)
+    if count * rows < n:
+        tail = fn(*[jax.lax.slice_in_dim(t, count * rows, n, axis=axis) for t in inputs])
+        out = jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, count * rows, axis), out, tail)
+    return out
+
+
+def update_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,
+                  bytes_per_row: int = 0, multiple: int = 8) -> jax.Array:
+    """x with every chunk of `rows` tokens along `axis` replaced by `fn(x_chunk,
+    *input_chunks)` (same shape and dtype), in place: the residual stream is updated
+    without a second copy."""
+    n = x.shape[axis]
+    rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
+    if rows >= n:
+        return fn(x, *inputs)
+    count = n // rows
+
+    def body(i, acc):
+        res = fn(_token_slice(acc, i * rows, rows, axis), *[_token_slice(t, i * rows, rows, axis) for t in inputs])
+        return jax.lax.dynamic_update_slice_in_dim(acc, res, i * rows, axis)
+
+    x = jax.lax.fori_loop(0, count, body, x)
+    if count * rows < n:
+        res = fn(jax.lax.slice_in_dim(x, count * rows, n, axis=axis),
+                 *[jax.lax.slice_in_dim(t, count * rows, n, axis=axis) for t in inputs])
+        x = jax.lax.dynamic_update_slice_in_dim(x, res, count * rows, axis)
+    return x

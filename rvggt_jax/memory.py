@@ -1,0 +1,101 @@
+"""Memory of a forward pass before running it: XLA's own buffer assignment.
+
+    rep = rvggt_jax.memory_report(config.with_compression("regime").with_dtype("bfloat16"),
+                                  frames=1000, height=392, width=518)
+    rep.total_bytes, rep.temp_bytes, str(rep)
+
+The forward is lowered and compiled for abstract inputs (`jax.ShapeDtypeStruct`) on the
+default backend (or `backend`): nothing runs and no weights are needed, so 1000 frames of
+VGGT-1B can be planned on a laptop. Peak = arguments + outputs + temporaries - aliased,
+the figure XLA allocates for the program (the device also holds its runtime and, for a
+CPU, the Python process).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from rvggt_jax.config import VGGTConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class MemoryReport:
+    """XLA's memory plan of one compiled forward, in bytes."""
+
+    frames: int
+    height: int
+    width: int
+    batch: int
+    dtype: str
+    param_dtype: str
+    preset: str
+    argument_bytes: int  # parameters + images (+ query points)
+    output_bytes: int
+    temp_bytes: int
+    alias_bytes: int
+    compile_seconds: float
+
+    @property
+    def total_bytes(self) -> int:
+        """Peak bytes XLA plans for the program: arguments + outputs + temporaries - aliased."""
+        return self.argument_bytes + self.output_bytes + self.temp_bytes - self.alias_bytes
+
+    def __str__(self) -> str:
+        gb = 1e9
+        return (f"{self.preset} {self.dtype} (params {self.param_dtype}), {self.batch} x {self.frames} frames of "
+                f"{self.height} x {self.width}: {self.total_bytes / gb:.1f} GB (arguments "
+                f"{self.argument_bytes / gb:.1f}, outputs {self.output_bytes / gb:.1f}, temporaries "
+                f"{self.temp_bytes / gb:.1f})")
+
+
+def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:
+    """The converted parameter tree of `config` as `jax.ShapeDtypeStruct` leaves (the
+    aggregator's in `param_dtype`, as `load_pretrained(..., param_dtype=...)` loads it)."""
+    from convert.convert import expected_param_shapes
+    from rvggt_jax.checkpoint import cast_params
+
+    tree = expected_param_shapes(config, skip_track=not (with_track and config.enable_track))
+    return cast_params(tree, param_dtype)
+
+
+def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
+                  dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
+                  backend: str | None = None) -> MemoryReport:
+    """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
+    `height` x `width` (multiples of the patch size) under `config`, without running it.
+
+    dtype: the compute dtype (default `config.dtype`); param_dtype: the aggregator's
+    weight dtype (default: the compute dtype). query_points > 0 includes the track head.
+    """
+    from rvggt_jax.model import InputError, rvggt_forward
+
+    import time
+
+    if min(frames, height, width, batch) <= 0:
+        raise InputError(f"frames, height, width and batch must be positive; got {frames}, {height}, {width}, {batch}")
+    ps = config.patch_size
+    if height % ps or width % ps:
+        raise InputError(f"image height and width must be multiples of the patch size {ps}; got {height} x {width}")
+    if dtype is not None:
+        config = config.with_dtype(dtype)
+    param_dtype = config.dtype if param_dtype is None else jnp.dtype(param_dtype).name
+    with_track = query_points > 0
+    params = abstract_params(config, with_track=with_track, param_dtype=param_dtype)
+    images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), jnp.float32)
+    args = (params, images, config)
+    if with_track:
+        args += (jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32),)
+    t0 = time.perf_counter()
+    jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
+    compiled = jitted.lower(*args).compile()
+    m = compiled.memory_analysis()
+    seconds = time.perf_counter() - t0
+    return MemoryReport(
+        frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, param_dtype=param_dtype,
+        preset=config.compression.name, argument_bytes=int(m.argument_size_in_bytes),
+        output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
+        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds)
