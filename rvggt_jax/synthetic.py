@@ -208,7 +208,7 @@ def orbit_cameras(frames: int, radius: float = 3.0, height: float = -1.0, arc_de
     floor), all looking at `target`; `jitter` moves each centre by up to that much."""
     angles = np.deg2rad(phase_deg + np.linspace(-arc_deg / 2, arc_deg / 2, frames))
     out = []
-    for k, a in enumerate(angles):
+    for a in angles:
         c = np.array([radius * np.sin(a), height, -radius * np.cos(a)])
         if jitter and rng is not None:
             c = c + rng.uniform(-jitter, jitter, 3)

@@ -78,21 +78,28 @@ def test_eval_against_dense(cache, tmp_path):
         assert 0 <= float(x["auc@30"]) <= 1 and float(x["abs_rel"]) >= 0 and float(x["chamfer"]) >= 0
 
 
-def one_error(r, *needles):
-    assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
-    errs = [ln for ln in r.stderr.splitlines() if ln.startswith("rvggt: error:")]
-    assert len(errs) == 1, r.stderr
+def one_error(capsys, argv, *needles):
+    """`rvggt eval ARGV` in this process fails with one `rvggt: error:` line naming `needles`."""
+    from rvggt_jax.cli import main
+
+    code = main(["eval", *map(str, argv)])
+    err = capsys.readouterr().err
+    assert code != 0 and "Traceback" not in err, err
+    errs = [ln for ln in err.splitlines() if ln.startswith("rvggt: error:")]
+    assert len(errs) == 1, err
     for n in needles:
         assert n in errs[0], errs[0]
 
 
-def test_eval_errors(cache, tmp_path):
-    one_error(rvggt(cache, "--dataset", "tnt", "--root", tmp_path / "none", "--out", tmp_path / "o"), "none")
-    one_error(rvggt(cache, "--dataset", "tnt", "--root", tmp_path, "--presets", "warp", "--out", tmp_path / "o"), "warp")
-    one_error(rvggt(cache, "--dataset", "kitti", "--root", tmp_path, "--out", tmp_path / "o"), "kitti")
-    one_error(rvggt(cache, "--dataset", "images", "--root", tmp_path, "--out", tmp_path / "o"), "--against")
-    one_error(rvggt(cache, "--dataset", "tnt", "--root", tmp_path, "--out", tmp_path / "o", "--size", "50"), "14")
+def test_eval_errors(capsys, tmp_path):
+    out = ("--out", tmp_path / "o", "--quiet")
+    one_error(capsys, ["--dataset", "tnt", "--root", tmp_path / "none", *out], "none")
+    one_error(capsys, ["--dataset", "tnt", "--root", tmp_path, "--presets", "warp", *out], "warp")
+    one_error(capsys, ["--dataset", "kitti", "--root", tmp_path, *out], "kitti")
+    one_error(capsys, ["--dataset", "images", "--root", tmp_path, *out], "--against")
+    one_error(capsys, ["--dataset", "tnt", "--root", tmp_path, "--size", "50", *out], "14")
+    one_error(capsys, ["--dataset", "tnt", "--root", tmp_path, "--weights", tmp_path / "nockpt", *out], "nockpt")
     d = tmp_path / "s7"
     (d / "chess").mkdir(parents=True)
     (d / "chess" / "TestSplit.txt").write_text("sequence1\n")
-    one_error(rvggt(cache, "--dataset", "7scenes", "--root", d, "--out", tmp_path / "o"), "seq-01")
+    one_error(capsys, ["--dataset", "7scenes", "--root", d, *out], "seq-01")

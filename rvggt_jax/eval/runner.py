@@ -81,8 +81,7 @@ class Predictor:
         from rvggt_jax import rvggt_forward
         from rvggt_jax.geometry import pose_encoding_to_extri_intri
 
-        cfg = self.config if preset == "dense" and self.config.compression.name == "dense" else \
-            self.config.with_compression(preset)
+        cfg = self.config.with_compression(preset)
         key = (preset, images.shape)
         t0 = time.perf_counter()
         if key not in self._compiled:
