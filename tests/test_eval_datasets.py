@@ -13,7 +13,7 @@ from rvggt_jax.eval.protocols import PROTOCOLS, against_reference
 from rvggt_jax.synthetic import make_scene, write_scene
 
 W, H = 56, 42
-K7 = 585 * W / 640  # the 7 Scenes calibration at 56x42 (fx = fy), which every format stores
+K7 = 525 * W / 640  # the 7 Scenes calibration at 56x42 (fx = fy), which every format stores
 
 
 @pytest.fixture(scope="module")
@@ -74,8 +74,14 @@ def test_broken_folders_name_the_missing_file(scene, tmp_path):
     with pytest.raises(DatasetError, match="frame-000002.pose.txt"):
         load_scenes("7scenes", root)
     d = write_scene(scene, "nrgbd", tmp_path / "nr")
-    (d / "focal.txt").unlink()
-    with pytest.raises(DatasetError, match="focal.txt"):
+    (d / "poses.txt").unlink()
+    (d / "images").rename(d / "pictures")
+    with pytest.raises(DatasetError, match="no NRGBD scene"):
+        load_scenes("nrgbd", tmp_path / "nr")
+    with pytest.raises(DatasetError, match="poses.txt"):
+        load_scenes("nrgbd", tmp_path / "nr", scenes=[d.name])
+    (d / "poses.txt").write_text("1 0 0 0\n")
+    with pytest.raises(DatasetError, match="16 numbers"):
         load_scenes("nrgbd", tmp_path / "nr")
     d = write_scene(scene, "scannet", tmp_path / "sn")
     (d / "intrinsic" / "intrinsic_color.txt").unlink()
@@ -95,6 +101,35 @@ def test_broken_folders_name_the_missing_file(scene, tmp_path):
         load_scenes("folder", tmp_path / "nowhere")
     with pytest.raises(DatasetError, match="unknown dataset"):
         load_scenes("kitti", tmp_path)
+
+
+def test_7scenes_every_test_sequence_and_raw_depth(scene, tmp_path):
+    from rvggt_jax.eval.datasets.sevenscenes import intrinsics_for
+
+    seq = write_scene(scene, "7scenes", tmp_path)
+    (seq.parent / "TestSplit.txt").write_text("sequence1\nsequence3\n")
+    (seq.parent / "seq-03").symlink_to(seq)
+    assert [s.name for s in load_scenes("7scenes", tmp_path)] == [f"{scene.name}/seq-01", f"{scene.name}/seq-03"]
+    for p in seq.glob("*.depth.proj.png"):  # only the raw Kinect depth: the depth camera's f = 585
+        p.rename(p.with_name(p.name.replace(".depth.proj.png", ".depth.png")))
+    (sc, _) = load_scenes("7scenes", tmp_path)
+    np.testing.assert_allclose(sc.intrinsics[0], intrinsics_for(W, H, 585.0))
+    assert sc.depth_paths[0].name.endswith(".depth.png") and sc.depth(0).shape == (H, W)
+
+
+def test_nrgbd_keyframe_stride_is_capped_at_half_the_frames(tmp_path):
+    from rvggt_jax.eval.runner import EvalSettings, scene_indices
+
+    def run(dataset, **kw):
+        return EvalSettings(dataset, str(tmp_path), ("dense",), str(tmp_path), "w", **kw)
+
+    assert scene_indices(run("nrgbd"), 100) == list(range(0, 100, 10))
+    assert scene_indices(run("nrgbd"), 8) == [0, 4]  # min(10, 8 // 2)
+    assert scene_indices(run("7scenes"), 8) == [0]
+    assert scene_indices(run("nrgbd", stride=3), 5) == [0, 2, 4]
+    assert scene_indices(run("scannet"), 2000)[:3] == [0, 1, 3] and len(scene_indices(run("scannet"), 2000)) == 1000
+    assert scene_indices(run("dtu"), 49) == list(range(48))
+    assert scene_indices(run("tnt", frames=3, sampling="even"), 9) == [0, 4, 8]
 
 
 def test_colmap_text_model_and_ascii_ply(scene, tmp_path):

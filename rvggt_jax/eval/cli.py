@@ -58,7 +58,8 @@ def add_eval_parser(sub) -> None:
 
 def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES, frames: int | None = None) -> list[Path]:
     """`scenes` procedural scenes (`rvggt_jax.synthetic`) of 84x63 frames in `dataset`'s
-    format under `root` (with the 7 Scenes calibration, which every format can store).
+    format under `root` (with the 7 Scenes calibration f = 525 x 84 / 640, which every
+    format can store).
     frames: per scene; default 21 where the protocol keeps every 10th frame (3 kept),
     else 8."""
     from rvggt_jax.eval.protocols import PROTOCOLS
@@ -69,7 +70,7 @@ def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES
         frames = 2 * p.stride + 1 if p is not None and p.stride > 1 else 8
 
     w, h = 84, 63
-    return [write_scene(make_scene(frames, h, w, seed=i, focal=(585 * w / 640, 585 * h / 480),
+    return [write_scene(make_scene(frames, h, w, seed=i, focal=(525 * w / 640, 525 * h / 480),
                                    name=f"synthetic_{i + 1:03d}"), dataset, root) for i in range(scenes)]
 
 

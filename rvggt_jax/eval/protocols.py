@@ -45,6 +45,7 @@ class Protocol:
     sampling: str = "first"
     higher_is_better: tuple[str, ...] = ()
     source: str = ""
+    stride_cap_half: bool = False  # NRGBD's loader: stride = min(K, n // 2)
 
     @property
     def headline(self) -> str:
@@ -214,7 +215,7 @@ PROTOCOLS: dict[str, Protocol] = {
     "7scenes": Protocol("7scenes", ("acc", "acc_med", "comp", "comp_med", "nc", "nc_med"), score_dense_recon,
                         stride=10, higher_is_better=("nc", "nc_med"), source=_SRC_7N),
     "nrgbd": Protocol("nrgbd", ("acc", "acc_med", "comp", "comp_med", "nc", "nc_med"), score_dense_recon,
-                      stride=10, higher_is_better=("nc", "nc_med"), source=_SRC_7N),
+                      stride=10, higher_is_better=("nc", "nc_med"), source=_SRC_7N, stride_cap_half=True),
     "scannet": Protocol("scannet", ("chamfer", "ate", "are", "rpe_rot", "rpe_trans"), score_scannet,
                         frames=1000, sampling="scannet",
                         source="RegimeVGGT eval/eval_scannet50.py + FastVGGT vggt/utils/eval_utils.py"),

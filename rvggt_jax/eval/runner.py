@@ -60,6 +60,16 @@ class EvalSettings:
                     against=self.against, **self.frame_selection())
 
 
+def scene_indices(settings: EvalSettings, n: int) -> list[int]:
+    """The frames (indices into a scene of n frames) this run evaluates."""
+    sel = settings.frame_selection()
+    stride = sel["stride"]
+    proto = PROTOCOLS.get(settings.dataset)
+    if proto is not None and proto.stride_cap_half:
+        stride = max(1, min(stride, n // 2))
+    return sample_indices(n, stride=stride, frames=sel["frames"], how=sel["how"], seed=sel["seed"])
+
+
 def _slug(name: str) -> str:
     return name.replace("/", "__").replace("\\", "__") or "scene"
 
@@ -132,7 +142,6 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
         raise ValueError(f"dataset {settings.dataset!r} has no ground truth: use --against dense")
     if settings.against is None and any(s.extrinsics is None for s in scenes):
         raise ValueError("these scenes have no cameras: use --against dense")
-    sel = settings.frame_selection()
     runs = Path(settings.out) / "runs"
     predictor: Predictor | None = None
     rows: list[dict] = []
@@ -140,8 +149,7 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
     if settings.against and settings.against in presets:
         presets.remove(settings.against)  # the reference is not compared with itself
     for scene in tqdm(scenes, desc="scenes", unit="scene", disable=not progress):
-        idx = sample_indices(len(scene), stride=sel["stride"], frames=sel["frames"], how=sel["how"], seed=sel["seed"])
-        sub = scene.subset(idx)
+        sub = scene.subset(scene_indices(settings, len(scene)))
         todo, ref_pred, images, infos = [], None, None, None
         for preset in presets:
             path = runs / preset / f"{_slug(scene.name)}.json"

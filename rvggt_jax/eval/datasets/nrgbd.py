@@ -4,11 +4,14 @@
     ROOT/<scene>/depth/depth0.png ...      uint16 millimetres, 0 = no depth
     ROOT/<scene>/poses.txt                 4 rows per frame: 4x4 camera-to-world, OpenGL
                                            axes (x right, y up, z backwards); NaN = invalid
-    ROOT/<scene>/focal.txt                 the focal length in pixels
+    ROOT/<scene>/focal.txt                 the focal length in pixels (optional)
 
-The principal point is the image centre. Poses are converted to OpenCV
-(c2w @ diag(1, -1, -1, 1)) and frames whose pose is not finite are dropped, as the CUT3R
-loader that RegimeVGGT's `eval/eval_7andN.py` uses.
+Poses are converted to OpenCV (c2w @ diag(1, -1, -1, 1)) as CUT3R's `NRGBD` loader,
+which RegimeVGGT's `eval/eval_7andN.py` uses. That loader hard-codes f = 554.256...,
+c = (320, 240) at 640x480; here focal.txt is used when present (principal point at the
+image centre), else that constant scaled to the image. Depth above 10 m or below 1 mm
+is no depth. Frames whose pose is not finite are dropped (the loader would keep them
+with an identity pose).
 """
 
 from __future__ import annotations
@@ -23,6 +26,14 @@ from rvggt_jax.eval.datasets.files import c2w_to_w2c, read_depth_u16, save_image
 
 NAME = "nrgbd"
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+FOCAL = 554.2562584220408  # 320 / tan(30 deg): the protocol's constant at 640x480
+
+
+def read_depth(path: Path) -> np.ndarray:
+    """[H, W] metres; above 10 m and below 1 mm is no depth (0), as the protocol."""
+    d = read_depth_u16(path, 1e-3)
+    d[(d > 10.0) | (d < 1e-3)] = 0.0
+    return d
 
 
 def list_scenes(root: Path) -> list[str]:
@@ -38,7 +49,7 @@ def read_scene(root: Path, name: str, **_) -> Scene:
         raise DatasetError(f"missing NRGBD scene folder: {d}")
     try:
         poses = np.array(need_file(d / "poses.txt", "camera poses").read_text().split(), dtype=np.float64)
-        focal = float(need_file(d / "focal.txt", "focal length").read_text().split()[0])
+        focal = float((d / "focal.txt").read_text().split()[0]) if (d / "focal.txt").is_file() else None
     except (ValueError, IndexError):
         raise DatasetError(f"malformed poses.txt or focal.txt in {d}") from None
     if poses.size % 16:
@@ -53,12 +64,16 @@ def read_scene(root: Path, name: str, **_) -> Scene:
 
     with Image.open(imgs[0]) as im:
         w, h = im.size
-    k = np.array([[focal, 0, w / 2.0], [0, focal, h / 2.0], [0, 0, 1.0]])
+    if focal is None:
+        fx, fy = FOCAL * w / 640, FOCAL * h / 480
+    else:
+        fx = fy = focal
+    k = np.array([[fx, 0, w / 2.0], [0, fy, h / 2.0], [0, 0, 1.0]])
     keep = [i for i, p in enumerate(imgs) if np.isfinite(poses[int(re.sub(r"\D", "", p.stem))]).all()]
     ids = [re.sub(r"\D", "", imgs[i].stem) for i in keep]
     ext = np.stack([c2w_to_w2c(poses[int(j)] @ GL_TO_CV) for j in ids])
     return Scene(NAME, name, [imgs[i] for i in keep], ext, np.repeat(k[None], len(keep), axis=0), ids,
-                 [d / "depth" / f"depth{j}.png" for j in ids], lambda p: read_depth_u16(p, 1e-3), None)
+                 [d / "depth" / f"depth{j}.png" for j in ids], read_depth, None)
 
 
 def write(scene, root: Path) -> Path:
