@@ -103,29 +103,34 @@ def icp_point_to_point(src, dst, threshold: float, init: np.ndarray | None = Non
                        rel_fitness: float = 1e-6, rel_rmse: float = 1e-6) -> np.ndarray:
     """Rigid point-to-point ICP of `src` [N, 3] onto `dst` [M, 3] -> [4, 4] transform.
 
-    Each iteration pairs every transformed source point with its nearest destination
-    point, keeps the pairs closer than `threshold`, and re-solves the rigid transform
-    on them (Kabsch = `umeyama(with_scale=False)`). It stops after `max_iter`
-    iterations or when fitness (kept fraction) and inlier RMSE change by less than the
-    relative tolerances, as Open3D's `registration_icp` with
-    `TransformationEstimationPointToPoint()` and its default criteria."""
+    Open3D's `registration_icp(..., TransformationEstimationPointToPoint())` loop with
+    its default `ICPConvergenceCriteria`: pair every transformed source point with its
+    nearest destination point closer than `threshold`; up to `max_iter` times, re-solve
+    the rigid transform on those pairs (Kabsch = `umeyama(with_scale=False)`), apply it,
+    re-pair, and stop once fitness (paired fraction of the source) and inlier RMSE both
+    change by less than `rel_fitness` / `rel_rmse` (absolute differences, as Open3D)."""
     src, dst = _points(src, "src"), _points(dst, "dst")
     tree = cKDTree(dst)
     total = np.eye(4) if init is None else np.asarray(init, np.float64).copy()
-    prev_fit, prev_rmse = 0.0, 0.0
-    for _ in range(max_iter):
-        cur = src @ total[:3, :3].T + total[:3, 3]
-        dist, idx = tree.query(cur, distance_upper_bound=threshold)
+
+    def pair(t):
+        cur = src @ t[:3, :3].T + t[:3, 3]
+        dist, idx = tree.query(cur, distance_upper_bound=threshold, workers=-1)
         keep = np.isfinite(dist)
+        fit = float(keep.mean())
+        rmse = float(np.sqrt(np.mean(dist[keep] ** 2))) if keep.any() else 0.0
+        return cur, idx, keep, fit, rmse
+
+    cur, idx, keep, fit, rmse = pair(total)
+    for _ in range(max_iter):
         if keep.sum() < 3:
             break
-        fit = keep.mean()
-        rmse = float(np.sqrt(np.mean(dist[keep] ** 2)))
-        if abs(fit - prev_fit) < rel_fitness * max(fit, 1e-12) and abs(rmse - prev_rmse) < rel_rmse * max(rmse, 1e-12):
-            break
-        prev_fit, prev_rmse = fit, rmse
         _, r, t = umeyama(cur[keep], dst[idx[keep]], with_scale=False)
         total = sim3_matrix(1.0, r, t) @ total
+        prev_fit, prev_rmse = fit, rmse
+        cur, idx, keep, fit, rmse = pair(total)
+        if abs(prev_fit - fit) < rel_fitness and abs(prev_rmse - rmse) < rel_rmse:
+            break
     return total
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = ["write_csv", "write_markdown", "write_plots"]
 
-_COST = ("time_s", "compile_s", "mem_gb")
+_COST = ("time_s", "compile_s", "mem_gb", "status")
 
 
 def _metrics(rows: Sequence[dict], preferred: Sequence[str]) -> list[str]:
@@ -58,18 +58,24 @@ def write_markdown(path: Path, rows: Sequence[dict], metrics: Sequence[str], tit
             "mem max (GB)"]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in presets:
-        rs = [r for r in rows if r["preset"] == p]
+        rs = [r for r in rows if r["preset"] == p and r.get("status") != "OOM"]
+        if not rs:  # every scene ran out of memory: the paper's "OOM" row
+            lines.append("| " + " | ".join([p, *["OOM"] * (len(head) - 1)]) + " |")
+            continue
         mem = [r.get("mem_gb") for r in rs if r.get("mem_gb") is not None]
         cells = [p, *(_fmt(_mean(r.get(m) for r in rs)) for m in metrics), _fmt(_mean(r["time_s"] for r in rs)),
                  _fmt(sum(r["time_s"] for r in rs)), _fmt(_mean(mem)), _fmt(max(mem) if mem else None)]
-        lines.append("| " + " | ".join(cells) + " |")
+        n_oom = sum(r.get("status") == "OOM" for r in rows if r["preset"] == p)
+        lines.append("| " + " | ".join(cells) + " |" + (f" ({n_oom} scene(s) OOM, not in the means)" if n_oom else ""))
     if metrics:
         m = metrics[0]
         lines += ["", f"## {m} per scene", "", "| preset | " + " | ".join(scenes) + " | mean |",
                   "|" + "---|" * (len(scenes) + 2)]
         for p in presets:
-            by = {r["scene"]: r.get(m) for r in rows if r["preset"] == p}
-            lines.append("| " + " | ".join([p, *(_fmt(by.get(s)) for s in scenes), _fmt(_mean(by.values()))]) + " |")
+            by = {r["scene"]: "OOM" if r.get("status") == "OOM" else r.get(m) for r in rows if r["preset"] == p}
+            vals = [v for v in by.values() if v != "OOM"]
+            lines.append("| " + " | ".join([p, *("OOM" if by.get(s) == "OOM" else _fmt(by.get(s)) for s in scenes),
+                                            _fmt(_mean(vals))]) + " |")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -88,6 +94,7 @@ def write_plots(folder: Path, rows: Sequence[dict], metrics: Sequence[str], runs
     from rvggt_jax.eval.alignment import apply_sim3, umeyama
 
     folder.mkdir(parents=True, exist_ok=True)
+    rows = [r for r in rows if r.get("status") != "OOM"]
     metrics = _metrics(rows, metrics)
     if not metrics:
         return []

@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from rvggt_jax.eval.datasets import Scene, load_scenes, sample_indices
+from rvggt_jax.eval.datasets import load_scenes, sample_indices
 from rvggt_jax.eval.frames import network_images
 from rvggt_jax.eval.protocols import PROTOCOLS, against_reference
 
@@ -85,7 +85,10 @@ class Predictor:
         self.params, self.config = rvggt_jax.load_pretrained(weights, skip_track=True)
         self._compiled: dict = {}
 
-    def __call__(self, preset: str, images: np.ndarray) -> tuple[dict, dict]:
+    def __call__(self, preset: str, images: np.ndarray, **_) -> tuple[dict, dict]:
+        """outputs of `preset` on images [S, 3, H, W] as numpy (extrinsics [S, 3, 4],
+        intrinsics [S, 3, 3], depth [S, H, W], depth_conf, world_points [S, H, W, 3],
+        world_points_conf) and the cost {"time_s", "compile_s", "mem_gb"}."""
         import jax
 
         from rvggt_jax import rvggt_forward
@@ -130,10 +133,21 @@ def _save(path: Path, doc: dict, arrays: dict) -> None:
     tmp.replace(path)  # a result on disk is always whole: resuming never reads half a file
 
 
-def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str], None] = print) -> list[dict]:
+def is_out_of_memory(e: BaseException) -> bool:
+    """Whether an exception from running the model means it ran out of memory."""
+    msg = str(e)
+    return isinstance(e, MemoryError) or "RESOURCE_EXHAUSTED" in msg or "out of memory" in msg.lower()
+
+
+def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str], None] = print,
+             predictor_factory: Callable[[str], Any] = Predictor) -> list[dict]:
     """Run every preset on every scene (skipping stored results); returns one row per
     (scene, preset): {"scene", "preset", "frames", metrics..., "time_s", "compile_s",
-    "mem_gb"}. Raises DatasetError / ValueError for bad input."""
+    "mem_gb"}, or {"scene", "preset", "frames", "status": "OOM"} where the model ran out
+    of memory (as the paper's tables mark it; kept on disk: delete the run's json to
+    retry). `predictor_factory(weights)` -> callable(preset, images, scene=...) ->
+    (outputs, cost), `Predictor` unless testing. Raises DatasetError / ValueError for
+    bad input."""
     from tqdm.auto import tqdm
 
     opts = {"gt_root": Path(settings.gt_root)} if settings.gt_root else {}
@@ -143,14 +157,14 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
     if settings.against is None and any(s.extrinsics is None for s in scenes):
         raise ValueError("these scenes have no cameras: use --against dense")
     runs = Path(settings.out) / "runs"
-    predictor: Predictor | None = None
+    predictor = None
     rows: list[dict] = []
     presets = list(settings.presets)
     if settings.against and settings.against in presets:
         presets.remove(settings.against)  # the reference is not compared with itself
     for scene in tqdm(scenes, desc="scenes", unit="scene", disable=not progress):
         sub = scene.subset(scene_indices(settings, len(scene)))
-        todo, ref_pred, images, infos = [], None, None, None
+        todo = []
         for preset in presets:
             path = runs / preset / f"{_slug(scene.name)}.json"
             doc = _load(path, settings.key(preset))
@@ -161,18 +175,35 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
         if not todo:
             continue
         if predictor is None:
-            predictor = Predictor(settings.weights)
+            predictor = predictor_factory(settings.weights)
         images, infos = network_images(sub.image_paths, settings.size)
+        ref_pred = None
         if settings.against:
-            ref_pred, _ = predictor(settings.against, images)
+            try:
+                ref_pred, _ = predictor(settings.against, images, scene=sub)
+            except Exception as e:
+                if not is_out_of_memory(e):
+                    raise
+                say(f"warning: {scene.name}: the reference {settings.against} ran out of memory; scene skipped")
+                continue
         for preset, path in tqdm(todo, desc=f"presets ({scene.name})", unit="preset", leave=False,
                                  disable=not progress):
-            pred, cost = predictor(preset, images)
+            base = dict(scene=scene.name, preset=preset, frames=len(sub))
+            try:
+                pred, cost = predictor(preset, images, scene=sub)
+            except Exception as e:
+                if not is_out_of_memory(e):
+                    raise
+                say(f"warning: {scene.name} / {preset}: out of memory")
+                row = dict(base, status="OOM")
+                rows.append(row)
+                _save(path, dict(settings=settings.key(preset), row=row), {})
+                continue
             if ref_pred is not None:
                 metrics = against_reference(pred, ref_pred)
             else:
                 metrics = PROTOCOLS[settings.dataset].score(sub, pred, infos)
-            row = dict(scene=scene.name, preset=preset, frames=len(sub), **metrics, **cost)
+            row = dict(base, **metrics, **cost)
             rows.append(row)
             _save(path, dict(settings=settings.key(preset), row=row),
                   dict(pred_extrinsics=pred["extrinsics"], gt_extrinsics=sub.extrinsics,
