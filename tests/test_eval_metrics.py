@@ -237,3 +237,19 @@ def test_point_metrics_reject_bad_input():
         chamfer_distance(np.full((5, 3), np.nan), np.zeros((5, 3)))
     with pytest.raises(ValueError, match="empty"):
         chamfer_distance(np.zeros((0, 3)), np.zeros((5, 3)))
+
+
+def test_bbox_scale_on_a_subset_equals_subset_of_the_whole(scene):
+    """The ScanNet scorer aligns a subsample with the full cloud's box: the same rows as
+    aligning everything, then subsampling (FastVGGT's order)."""
+    from rvggt_jax.eval import bbox_scale
+
+    pts, _ = scene.cloud()
+    gt = apply_sim3(pts, 2.0, np.eye(3), np.array([1.0, 2.0, 3.0]))
+    full, s = bbox_scale(pts, gt)
+    assert s == pytest.approx(2.0)
+    np.testing.assert_allclose(full, gt, atol=1e-9)
+    idx = np.random.default_rng(0).choice(len(pts), 100, replace=False)
+    part, s2 = bbox_scale(pts[idx], gt, pred_bounds=(pts.min(0), pts.max(0)))
+    np.testing.assert_allclose(part, full[idx], atol=1e-12)
+    assert s2 == s

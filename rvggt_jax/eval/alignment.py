@@ -134,12 +134,14 @@ def icp_point_to_point(src, dst, threshold: float, init: np.ndarray | None = Non
     return total
 
 
-def bbox_scale(pred, gt) -> tuple[np.ndarray, float]:
+def bbox_scale(pred, gt, pred_bounds: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, float]:
     """FastVGGT's ScanNet alignment: scale pred [N, 3] about its bounding-box centre by
     diag(gt bbox) / diag(pred bbox) and move that centre onto gt's [M, 3] bounding-box
-    centre. Returns (aligned pred [N, 3], scale)."""
+    centre. `pred_bounds` = (min [3], max [3]) of a larger cloud that pred is a subset
+    of (the box is then that cloud's). Returns (aligned pred [N, 3], scale)."""
     pred, gt = _points(pred, "pred"), _points(gt, "gt")
-    plo, phi, glo, ghi = pred.min(0), pred.max(0), gt.min(0), gt.max(0)
+    plo, phi = (pred.min(0), pred.max(0)) if pred_bounds is None else pred_bounds
+    glo, ghi = gt.min(0), gt.max(0)
     pdiag, gdiag = np.linalg.norm(phi - plo), np.linalg.norm(ghi - glo)
     s = 1.0 if pdiag < 1e-8 else float(gdiag / pdiag)
     return (pred - (phi + plo) / 2) * s + (ghi + glo) / 2, s

@@ -57,15 +57,15 @@ def _rng_subsample(p: np.ndarray, n: int, rng) -> np.ndarray:
 
 
 def pred_points_from_depth(pred: dict, conf_threshold: float | None = None) -> np.ndarray:
-    """World points [N, 3] of the predicted depth unprojected with the predicted cameras
-    (pixels with depth_conf < conf_threshold dropped), float64."""
+    """World points [N, 3] (float32) of the predicted depth unprojected with the
+    predicted cameras; pixels with depth_conf < conf_threshold dropped."""
     from rvggt_jax.geometry import unproject_depth_map_to_point_map
 
     pts = unproject_depth_map_to_point_map(pred["depth"], pred["extrinsics"], pred["intrinsics"])
     keep = np.isfinite(pts).all(-1)
     if conf_threshold is not None:
         keep &= pred["depth_conf"] >= conf_threshold
-    return pts[keep].astype(np.float64)
+    return pts[keep]
 
 
 # ---------------------------------------------------------------------------------------
@@ -80,27 +80,29 @@ def score_dense_recon(scene, pred: dict, infos) -> dict[str, float]:
     at most 999,999 points each (seeded subsample); point-to-point ICP (threshold 0.1);
     then `point_cloud_metrics` with estimated normals."""
     s, h, w = pred["depth"].shape
-    gts, valids = zip(*(gt_points_at_network(scene, i, infos[i], (h, w)) for i in range(s)))
-    gt = np.stack(gts)
-    valid = np.stack(valids) & np.isfinite(pred["world_points"]).all(-1)
-    if valid.sum() < 10:
-        raise ValueError(f"scene {scene.name}: fewer than 10 pixels with ground-truth depth")
-    e0 = scene.extrinsics[0]
-    gt_cam1 = gt @ e0[:, :3].T + e0[:, 3]  # the protocol expresses the ground truth in camera 1
-    pr, gt_n = median_scale_shift(pred["world_points"][valid], gt_cam1[valid])
-    pr_full = np.full(gt.shape, np.nan)
-    gt_full = np.full(gt.shape, np.nan)
-    pr_full[valid], gt_full[valid] = pr, gt_n
     c = max(1, round(CROP * w / 518)) // 2
-    cy, cx = h // 2, w // 2
-    win = (slice(None), slice(max(cy - c, 0), cy + c), slice(max(cx - c, 0), cx + c))
-    m = valid[win]
-    pr, gt_n = pr_full[win][m], gt_full[win][m]
+    crop = np.zeros((h, w), bool)
+    crop[max(h // 2 - c, 0):h // 2 + c, max(w // 2 - c, 0):w // 2 + c] = True
+    e0 = scene.extrinsics[0]
+    gts, prs, in_crop = [], [], []
+    for i in range(s):  # valid pixels only: no full-size float64 copies of long sequences
+        world, valid = gt_points_at_network(scene, i, infos[i], (h, w))
+        valid &= np.isfinite(pred["world_points"][i]).all(-1)
+        gts.append(world[valid] @ e0[:, :3].T + e0[:, 3])  # the protocol's ground truth is in camera 1
+        prs.append(pred["world_points"][i][valid])
+        in_crop.append(crop[valid])
+    gt, pr, in_crop = np.concatenate(gts), np.concatenate(prs), np.concatenate(in_crop)
+    if len(gt) < 10:
+        raise ValueError(f"scene {scene.name}: fewer than 10 pixels with ground-truth depth")
+    pr, gt = median_scale_shift(pr, gt)
+    pr, gt = pr[in_crop], gt[in_crop]
+    if len(gt) < 10:
+        raise ValueError(f"scene {scene.name}: fewer than 10 pixels with ground-truth depth in the central crop")
     rng = np.random.default_rng(0)
-    pr, gt_n = _rng_subsample(pr, MAX_RECON_POINTS, rng), _rng_subsample(gt_n, MAX_RECON_POINTS, rng)
-    t = icp_point_to_point(pr, gt_n, ICP_THRESHOLD)
+    pr, gt = _rng_subsample(pr, MAX_RECON_POINTS, rng), _rng_subsample(gt, MAX_RECON_POINTS, rng)
+    t = icp_point_to_point(pr, gt, ICP_THRESHOLD)
     pr = pr @ t[:3, :3].T + t[:3, 3]
-    return point_cloud_metrics(pr, gt_n)
+    return point_cloud_metrics(pr, gt)
 
 
 # ---------------------------------------------------------------------------------------
@@ -120,13 +122,24 @@ def score_scannet(scene, pred: dict, infos) -> dict[str, float]:
     first = gt_c2w[0]
     if scene.points_path is not None:
         pts = pred_points_from_depth(pred, conf_threshold=1.0)
-        pts = pts @ first[:3, :3].T + first[:3, 3]
         gt = scene.gt_points()
-        pts, scale = bbox_scale(pts, gt)
-        rng = np.random.RandomState(SCANNET_SEED)
-        pts = pts if len(pts) <= SCANNET_MAX_POINTS else pts[rng.choice(len(pts), SCANNET_MAX_POINTS, replace=False)]
-        rng = np.random.RandomState(SCANNET_SEED)
-        gt = gt if len(gt) <= SCANNET_MAX_POINTS else gt[rng.choice(len(gt), SCANNET_MAX_POINTS, replace=False)]
+        # The protocol aligns all points, then subsamples; both steps commute (the
+        # alignment is affine), so the bounding boxes come from all points and only the
+        # subsample is converted and moved.
+        r0, t0 = first[:3, :3].astype(np.float32), first[:3, 3].astype(np.float32)
+        lo, hi = None, None
+        for chunk in np.array_split(pts, max(1, len(pts) // 5_000_000)):
+            moved = chunk @ r0.T + t0
+            lo = moved.min(0) if lo is None else np.minimum(lo, moved.min(0))
+            hi = moved.max(0) if hi is None else np.maximum(hi, moved.max(0))
+
+        def subsample(p):
+            rng = np.random.RandomState(SCANNET_SEED)  # FastVGGT reseeds before each cloud
+            return p if len(p) <= SCANNET_MAX_POINTS else p[rng.choice(len(p), SCANNET_MAX_POINTS, replace=False)]
+
+        pts = subsample(pts).astype(np.float64) @ first[:3, :3].T + first[:3, 3]
+        pts, scale = bbox_scale(pts, gt, pred_bounds=(lo.astype(np.float64), hi.astype(np.float64)))
+        gt = subsample(gt)
         pts, gt = voxel_downsample(pts, SCANNET_VOXEL), voxel_downsample(gt, SCANNET_VOXEL)
         out["chamfer"] = chamfer_distance(pts, gt, max_dist=SCANNET_MAX_DIST)
         out["scale"] = scale
@@ -179,9 +192,9 @@ def score_folder(scene, pred: dict, infos) -> dict[str, float]:
     if gt_cloud is not None and len(scene) >= 3:
         centers = lambda e: w2c_to_c2w(e)[:, :3, 3]  # noqa: E731
         sc, r, t = umeyama(centers(pred["extrinsics"]), centers(scene.extrinsics))
-        pts = apply_sim3(pred_points_from_depth(pred), sc, r, t)
         rng = np.random.default_rng(0)
-        pts, gt_cloud = _rng_subsample(pts, 200_000, rng), _rng_subsample(gt_cloud, 200_000, rng)
+        pts = apply_sim3(_rng_subsample(pred_points_from_depth(pred), 200_000, rng), sc, r, t)
+        gt_cloud = _rng_subsample(gt_cloud, 200_000, rng)
         pm = point_cloud_metrics(pts, gt_cloud)
         out.update(chamfer=pm["acc"] + pm["comp"], acc=pm["acc"], comp=pm["comp"], nc=pm["nc"])
     return out
@@ -198,15 +211,16 @@ def against_reference(pred: dict, ref: dict) -> dict[str, float]:
         out.update({k: v for k, v in camera_auc(pred["extrinsics"], ref["extrinsics"], (30, 15, 5, 3)).items()
                     if k != "pairs"})
     out["abs_rel"] = depth_abs_rel(pred["depth"], ref["depth"])
-    a, b = pred_points_from_depth(pred), pred_points_from_depth(ref)
+    rng = np.random.default_rng(0)
+    a = _rng_subsample(pred_points_from_depth(pred), 100_000, rng).astype(np.float64)
+    b = _rng_subsample(pred_points_from_depth(ref), 100_000, rng)
     if len(pred["extrinsics"]) >= 3:
         centers = lambda e: w2c_to_c2w(e)[:, :3, 3]  # noqa: E731
         try:
             a = apply_sim3(a, *umeyama(centers(pred["extrinsics"]), centers(ref["extrinsics"])))
         except ValueError:  # degenerate (coincident) cameras: compare as predicted
             pass
-    rng = np.random.default_rng(0)
-    out["chamfer"] = chamfer_distance(_rng_subsample(a, 100_000, rng), _rng_subsample(b, 100_000, rng))
+    out["chamfer"] = chamfer_distance(a, b)
     return out
 
 
