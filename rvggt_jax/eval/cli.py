@@ -16,6 +16,10 @@ from pathlib import Path
 __all__ = ["add_eval_parser", "run_eval_command", "write_synthetic_set"]
 
 SYNTHETIC_SCENES = 2
+RANDOM_WEIGHTS_NOTICE = (
+    "NOTE: no --weights: rvggt eval runs the tiny RANDOM-weight model (rvggt_jax/examples_data/tiny): the whole "
+    "pipeline runs, the scores are meaningless. For the paper's numbers pass --weights with converted VGGT-1B "
+    "weights (`rvggt convert`).")
 
 
 def add_eval_parser(sub) -> None:
@@ -82,7 +86,7 @@ def _fail(msg: str):
 
 def run_eval_command(args: argparse.Namespace) -> list[dict]:
     """Execute a parsed `rvggt eval`; raises `rvggt_jax.cli.CLIError` on bad input."""
-    from rvggt_jax.cli import DEMO_WEIGHTS, RANDOM_WEIGHTS_NOTICE, _one_line, enable_compilation_cache, known_presets
+    from rvggt_jax.cli import DEMO_WEIGHTS, _one_line, enable_compilation_cache, known_presets
     from rvggt_jax.eval.datasets import DatasetError
     from rvggt_jax.eval.protocols import AGAINST_HIGHER, AGAINST_METRICS, PROTOCOLS
     from rvggt_jax.eval.report import write_csv, write_markdown, write_plots
