@@ -433,6 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
                        description=RANDOM_WEIGHTS_NOTICE)
     p.add_argument("--out", default="rvggt_demo", metavar="DIR", help="output folder (default %(default)s)")
     _common_options(p, presets)
+
+    from rvggt_jax.eval.cli import add_eval_parser
+
+    add_eval_parser(sub)
     return parser
 
 
@@ -458,6 +462,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         max_points=args.max_points, quiet=args.quiet)
         elif args.command == "demo":
             demo(args.out, preset=args.preset, quiet=args.quiet)
+        elif args.command == "eval":
+            from rvggt_jax.eval.cli import run_eval_command
+
+            run_eval_command(args)
         return 0
     except CLIError as e:
         if os.environ.get("RVGGT_DEBUG"):
