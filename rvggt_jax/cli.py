@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 from typing import Any, Sequence
 
 from rvggt_jax.errors import CLIError, format_error, one_line
@@ -44,8 +43,7 @@ from rvggt_jax.pipeline import (  # noqa: F401 - re-exported: the API of `rvggt_
     warn,
 )
 
-_one_line = one_line
-_warn = warn
+_warn = warn  # the memory warning below (kept where the memory estimate is)
 
 
 class _Parser(argparse.ArgumentParser):

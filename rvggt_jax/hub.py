@@ -86,7 +86,7 @@ def _explain(repo_id: str, filename: str, e: Exception) -> str:
         return (f"{repo_id} is gated: request access on its hub page, then log in (`hf auth login`) "
                 f"or set HF_TOKEN")
     if name == "RepositoryNotFoundError":
-        return f"no Hugging Face repo {repo_id} (misspelled, private, or not a local path either)"
+        return f"no Hugging Face repo {repo_id} and no local path {repo_id} (misspelled? private repos need `hf auth login`)"
     if name in ("EntryNotFoundError", "RemoteEntryNotFoundError"):
         return f"{repo_id} has no {filename} (rvggt-jax reads the safetensors checkpoint)"
     if name == "RevisionNotFoundError":
@@ -94,7 +94,7 @@ def _explain(repo_id: str, filename: str, e: Exception) -> str:
     if _offline() or name in ("LocalEntryNotFoundError", "OfflineModeIsEnabled"):
         how = "HF_HUB_OFFLINE is set" if _offline() else "the hub cannot be reached"
         return (f"{filename} of {repo_id} is not in {where} and {how}; no converted copy in "
-                f"{_repo_dir(repo_id)} either: download it once online "
+                f"{_repo_dir(repo_id)} either (and no local path {repo_id}): download it once online "
                 f"(`hf download {repo_id} {filename} {CONFIG_FILE}`) or pass a local checkpoint")
     return f"cannot download {filename} of {repo_id}: {name}: {e}"
 

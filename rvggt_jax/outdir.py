@@ -121,7 +121,12 @@ class Manifest:
         return sorted(k for k, v in now.items() if k != MANIFEST_NAME and self.before.get(k) != v)
 
     def write(self) -> list[str]:
+        """Record the files written since construction; a run that wrote nothing (it
+        failed before any output) leaves no manifest, so the folder stays reusable."""
         files = self.written()
+        if not files:
+            (self.out / MANIFEST_NAME).unlink(missing_ok=True)
+            return files
         (self.out / MANIFEST_NAME).write_text(json.dumps(
             dict(note="files written by the last rvggt run here; `--overwrite` deletes exactly these", files=files),
             indent=1) + "\n")

@@ -176,6 +176,26 @@ def decode_cameras(pose_enc, hw):
 # ---------------------------------------------------------------------------------------
 
 
+def _check_local_checkpoint(weights: Path) -> None:
+    """Fail now, not after loading the images, on a checkpoint that cannot be read:
+    missing, not a safetensors/Orbax checkpoint, or a truncated .safetensors (its
+    header is read: cheap)."""
+    from rvggt_jax.checkpoint import SAFETENSORS_NAME, CheckpointFileError, safetensors_shapes
+
+    if not weights.exists():
+        raise CLIError(f"checkpoint not found: {weights}")
+    st = weights if weights.is_file() else weights / SAFETENSORS_NAME
+    if weights.is_file() and weights.suffix != ".safetensors":
+        pt = " (PyTorch .pt files are not read: use the repo's model.safetensors)" if weights.suffix in (
+            ".pt", ".pth", ".bin") else ""
+        raise CLIError(f"checkpoint {weights} is not a .safetensors file or a checkpoint folder{pt}")
+    if st.is_file():
+        try:
+            safetensors_shapes(st)
+        except CheckpointFileError as e:
+            raise CLIError(str(e)) from None
+
+
 def _image_inputs(src: Path, max_frames: int | None, quiet: bool) -> list[Path]:
     from rvggt_jax.io.images import IMAGE_EXTENSIONS, find_images
 
@@ -269,10 +289,11 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
         raise CLIError(f"not a folder of images or a video file: {source} (videos end in .mp4, .mov, ...)")
     if not video and (every is not None or fps is not None):
         raise CLIError("--every / --fps choose frames of a video; the input is a folder of images")
-    if not is_repo_id(weights) and not Path(weights).exists():
-        raise CLIError(f"checkpoint not found: {weights}")
+    if not is_repo_id(weights):
+        _check_local_checkpoint(Path(weights))
     if not video:
         chosen = _image_inputs(source, max_frames, quiet)
+    created = not out_dir.exists()
     try:
         removed = prepare_output(out_dir, overwrite)
     except OutputDirError as e:
@@ -284,13 +305,12 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
     # says what is missing without having made the user wait)
     from rvggt_jax.hub import HubError, resolve_checkpoint
 
-    try:
-        local_weights = resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
-    except HubError as e:
-        raise CLIError(str(e)) from None
-
     manifest = Manifest(out_dir)
     try:
+        try:
+            local_weights = resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
+        except HubError as e:
+            raise CLIError(str(e)) from None
         if video:
             chosen = _video_inputs(source, out_dir, every, fps, max_frames, quiet)
         return _reconstruct(chosen, weights, local_weights, out_dir, preset=preset, mode=mode, conf_threshold=conf_threshold,
@@ -298,7 +318,11 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
                             skip_bad=skip_bad, exif_orientation=exif_orientation,
                             all_colmap_points=all_colmap_points, source=source)
     finally:
-        manifest.write()  # also after a failure: the next --overwrite removes exactly these
+        if not manifest.write() and created:  # also after a failure: the next --overwrite removes exactly these
+            try:
+                out_dir.rmdir()  # a run that failed before writing anything leaves no empty folder behind
+            except OSError:
+                pass
 
 
 def _reconstruct(chosen, weights, local_weights, out_dir, *, preset, mode, conf_threshold, max_frames, points_from, max_points,

@@ -82,3 +82,10 @@ def test_unwritable_folder_fails_early(tmp_path):
             prepare_output(ro / "out")
     finally:
         ro.chmod(0o700)
+
+
+def test_failed_run_that_wrote_nothing_leaves_folder_reusable(tmp_path):
+    out = tmp_path / "out"
+    prepare_output(out)
+    assert Manifest(out).write() == [] and not (out / MANIFEST_NAME).exists()
+    assert prepare_output(out) == 0  # still empty: no --overwrite needed

@@ -230,3 +230,12 @@ def test_cli_early_failures(tmp_path):
                                     RVGGT_WEIGHTS_DIR=str(tmp_path / "w"))),
                      "model.safetensors", "facebook/VGGT-1B", "HF_HUB_OFFLINE")
     assert "loaded" not in line
+    pt = tmp_path / "model.pt"
+    pt.write_bytes(b"PK not really")
+    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", pt, "--out", tmp_path / "o3"), "model.pt", "safetensors")
+    cut = tmp_path / "cut.safetensors"
+    cut.write_bytes((TINY / "model.safetensors").read_bytes()[:3_000_000])
+    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", cut, "--out", tmp_path / "o4"), "cut.safetensors",
+              "truncated or corrupt")
+    # failed runs leave no empty output folder behind
+    assert not any((tmp_path / d).exists() for d in ("o", "o2", "o3", "o4"))

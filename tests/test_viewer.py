@@ -6,7 +6,6 @@ reconstruction folder is written directly."""
 import shutil
 import socket
 import subprocess
-import time
 
 import numpy as np
 import pytest
