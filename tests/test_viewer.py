@@ -92,7 +92,7 @@ def test_viewer_in_headless_chromium(tmp_path):
         r = subprocess.run([_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
                             "--enable-unsafe-swiftshader", "--window-size=1000,700", "--virtual-time-budget=15000",
                             f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
-                            f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=120)
+                            f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=180)
         assert shot.is_file(), r.stderr[-2000:]
         assert connected, "the page never opened a websocket to the viewer"
         frustums = [server.scene.get_handle_by_name(f"/cameras/frame_{i:03d}") for i in range(S)]
