@@ -280,7 +280,9 @@ def test_one_error_from_safetensors_file(tiny_raw, tiny_config, tmp_path):
     with pytest.raises(CheckpointError) as ei:
         load_safetensors(tmp_path / "model.safetensors", tiny_config)
     _assert_names_all(ei.value)
-    with pytest.raises(CheckpointError):
+    from rvggt_jax.checkpoint import ConfigInferredWarning
+
+    with pytest.raises(CheckpointError), pytest.warns(ConfigInferredWarning):  # no config.json: inferred
         load_pretrained(tmp_path)
 
 
