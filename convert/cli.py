@@ -3,6 +3,9 @@
 Converts an upstream VGGT checkpoint (a `.safetensors` file, or a folder holding
 `model.safetensors`) to an Orbax checkpoint folder `DST` (`DST/params/` + `DST/config.json`)
 readable by `rvggt_jax.checkpoint.load_pretrained`.
+
+Errors are `PROG: error: <one line>` on stderr, details (e.g. every mismatched tensor)
+indented under it; PROG is `rvggt` when run as `rvggt convert`.
 """
 
 from __future__ import annotations
@@ -11,15 +14,23 @@ import argparse
 import dataclasses
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Sequence
 
-from rvggt_jax.checkpoint import CONFIG_NAME, SAFETENSORS_NAME, CheckpointError, save_orbax
-from rvggt_jax.config import VGGTConfig
+from rvggt_jax.checkpoint import CONFIG_NAME, SAFETENSORS_NAME, CheckpointError, config_for_safetensors, save_orbax
+from rvggt_jax.errors import CLIError, format_error
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose usage errors are raised (and printed as one line by `main`)."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        raise CLIError(f"{message} (see `{self.prog} --help`)", code=2)
 
 
 def build_parser(prog: str = "python -m convert") -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[1].replace("\n", " "))
+    ap = _Parser(prog=prog, description=__doc__.split("\n\n")[1].replace("\n", " "))
     ap.add_argument("src", type=Path, help=f"upstream .safetensors file, or a folder holding {SAFETENSORS_NAME}")
     ap.add_argument("dst", type=Path, help="output folder (Orbax checkpoint in DST/params + DST/config.json)")
     ap.add_argument(
@@ -44,21 +55,33 @@ def _resolve_src(src: Path) -> Path:
         return st
     if not src.is_file():
         raise FileNotFoundError(f"no such file or folder: {src}")
+    if src.suffix in (".pt", ".pth", ".bin"):
+        raise ValueError(f"{src}: PyTorch checkpoints are not read (no torch dependency); convert the "
+                         f"{SAFETENSORS_NAME} of the same hub repo (facebook/VGGT-1B has one)")
     return src
 
 
 def main(argv: Sequence[str] | None = None, prog: str = "python -m convert", *, timings: dict | None = None) -> int:
     """CLI entry point; returns the exit status (0 ok, 1 bad checkpoint / paths).
     `timings`, if given, receives `convert_s` and `save_s`."""
-    args = build_parser(prog).parse_args(argv)
+    name = "rvggt" if prog.startswith("rvggt") else "convert"
+    try:
+        args = build_parser(prog).parse_args(argv)
+    except CLIError as e:
+        print(format_error(name, str(e)), file=sys.stderr)
+        return e.code
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     try:
         st = _resolve_src(args.src)
         cfg_path = args.config if args.config is not None else st.parent / CONFIG_NAME
         if args.config is not None and not cfg_path.is_file():
             raise FileNotFoundError(f"no such config file: {cfg_path}")
-        config = VGGTConfig.from_json(cfg_path) if cfg_path.is_file() else VGGTConfig()
-        say(f"config: {cfg_path if cfg_path.is_file() else 'VGGT-1B defaults'}")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            config = config_for_safetensors(st, cfg_path if cfg_path.is_file() else None)
+        for w in caught:
+            print(f"{name}: warning: {w.message}", file=sys.stderr)
+        say(f"config: {cfg_path if cfg_path.is_file() else 'inferred from the tensor shapes'}")
         if args.no_track and config.enable_track:
             config = dataclasses.replace(config, enable_track=False)
         dst_params = args.dst / "params"
@@ -84,6 +107,6 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m convert", *, 
         if timings is not None:
             timings.update(convert_s=t1 - t0, save_s=t2 - t1)
     except (CheckpointError, FileNotFoundError, FileExistsError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(format_error(name, str(e)), file=sys.stderr)
         return 1
     return 0

@@ -18,7 +18,7 @@ import numpy as np
 from convert.rules import Path as TreePath
 from convert.rules import apply_rule, converted_shapes, find_rule
 from convert.shapes import upstream_state_dict_shapes
-from rvggt_jax.checkpoint import CheckpointError
+from rvggt_jax.checkpoint import CheckpointError, CheckpointFileError, unreadable_message
 from rvggt_jax.config import VGGTConfig
 
 Params = dict[str, Any]
@@ -75,8 +75,12 @@ class SafetensorsSource:
         self.path = Path(path)
         self.remap_bytes = remap_bytes
         self._ctx = self._f = None
-        self._open()
-        self._meta = {k: (self.shape_of(k), self._f.get_slice(k).get_dtype()) for k in self._f.keys()}
+        try:
+            self._open()
+            self._meta = {k: (self.shape_of(k), self._f.get_slice(k).get_dtype()) for k in self._f.keys()}
+        except Exception as e:  # SafetensorError (truncated header, bad JSON, ...) names no file
+            self.close()
+            raise CheckpointFileError(unreadable_message(self.path, e)) from None
 
     def _open(self) -> None:
         from safetensors import safe_open
@@ -111,7 +115,10 @@ class SafetensorsSource:
     def get(self, key: str) -> np.ndarray:
         if self._f is None:
             self._open()
-        x = self._f.get_tensor(key)
+        try:
+            x = self._f.get_tensor(key)
+        except Exception as e:  # data shorter than the header says: truncated
+            raise CheckpointFileError(unreadable_message(self.path, e)) from None
         self._since_open += x.nbytes
         if self._since_open >= self.remap_bytes:
             self.close()  # drop the map (and its resident pages); reopened on the next get

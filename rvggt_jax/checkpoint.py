@@ -2,7 +2,9 @@
 
 - `load_pretrained(path)` -> `(params, config)` from an upstream `model.safetensors`
   (a folder holding one, or the file itself; a `config.json` beside it is read, else
-  VGGT-1B is assumed) or from an Orbax checkpoint folder written by `save_orbax`.
+  the layout is inferred from the tensor shapes, see `config_for_safetensors`), from an
+  Orbax checkpoint folder written by `save_orbax`, or from a Hugging Face repo id
+  (`facebook/VGGT-1B`: downloaded and converted once, see `rvggt_jax.hub`).
 - `save_orbax(params, config, dst_dir)` writes `dst_dir/params/` (Orbax) and
   `dst_dir/config.json`.
 
@@ -16,6 +18,7 @@ import contextlib
 import dataclasses
 import logging
 import shutil
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -70,6 +73,58 @@ class CheckpointError(ValueError):
         section("wrong shape", self.mismatched, lambda t: f"{t[0]}: {tuple(t[1])}, expected {tuple(t[2])}")
         section("not floating point", self.bad_dtype, lambda t: f"{t[0]}: {t[1]}")
         return "\n".join(lines)
+
+
+class CheckpointFileError(ValueError):
+    """A checkpoint file that cannot be read at all (truncated, corrupt, not safetensors)."""
+
+
+class ConfigInferredWarning(UserWarning):
+    """No config.json beside a .safetensors: the layout was inferred from its shapes."""
+
+
+def safetensors_shapes(path: str | Path) -> dict[str, tuple[int, ...]]:
+    """{key: shape} from the header of a `.safetensors` file (no tensor is read).
+    Raises `CheckpointFileError` naming the file when it is truncated or corrupt."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="numpy") as f:
+            return {k: tuple(int(d) for d in f.get_slice(k).get_shape()) for k in f.keys()}
+    except Exception as e:  # SafetensorError has no importable base class across versions
+        raise CheckpointFileError(unreadable_message(path, e)) from None
+
+
+def unreadable_message(path: str | Path, e: Exception) -> str:
+    """One line: `path` is not a readable safetensors file, and why."""
+    size = Path(path).stat().st_size if Path(path).is_file() else 0
+    return (f"{path} is not a readable .safetensors file: truncated or corrupt ({size} bytes; "
+            f"{type(e).__name__}: {' '.join(str(e).split())}); download it again")
+
+
+def config_for_safetensors(st: str | Path, config_json: str | Path | None = None) -> VGGTConfig:
+    """The config of an upstream `.safetensors`: from `config_json` (default: the
+    `config.json` beside the file) when present, else inferred from the tensor shapes
+    (`convert.infer.infer_config`). An inferred layout other than VGGT-1B's emits one
+    `ConfigInferredWarning` naming the values the shapes do not fix."""
+    st = Path(st)
+    cj = Path(config_json) if config_json is not None else st.parent / CONFIG_NAME
+    if cj.is_file():
+        return VGGTConfig.from_json(cj)
+    from convert.infer import infer_config
+
+    try:
+        config, assumed = infer_config(safetensors_shapes(st))
+    except CheckpointFileError:
+        raise
+    except ValueError as e:
+        raise CheckpointFileError(f"{st}: {e}") from None
+    if assumed:
+        warnings.warn(ConfigInferredWarning(
+            f"no {CONFIG_NAME} beside {st}: layout inferred from its tensor shapes (embed_dim {config.embed_dim}, "
+            f"depth {config.depth}); not fixed by the shapes and assumed: {', '.join(assumed)} "
+            f"(put the model's {CONFIG_NAME} beside it if these differ)"), stacklevel=2)
+    return config
 
 
 # ---- Orbax ------------------------------------------------------------------------------------
@@ -217,7 +272,11 @@ def load_pretrained(
     """Load VGGT parameters -> `(params, config)`.
 
     `path` is one of:
-      - a folder with `model.safetensors` (+ optional `config.json`, else VGGT-1B);
+      - a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
+        path): downloaded into the hub cache and converted once to an Orbax copy under
+        `~/.cache/rvggt-jax/weights` (`rvggt_jax.hub`; offline the caches are used);
+      - a folder with `model.safetensors` (+ optional `config.json`, else the layout
+        is inferred from the shapes, `config_for_safetensors`);
       - a `.safetensors` file (a `config.json` beside it is used if present);
       - an Orbax folder written by `save_orbax` (`params/` + `config.json`), or its
         `params/` subfolder.
@@ -228,21 +287,27 @@ def load_pretrained(
     weights in bfloat16 (half their memory; `cast_params`), for
     `config.with_dtype("bfloat16")`.
     """
+    from rvggt_jax.hub import is_repo_id, resolve_checkpoint
+
+    if is_repo_id(path):
+        path = resolve_checkpoint(path, progress=progress)
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"checkpoint path does not exist: {p}")
 
     if p.is_file():
         if p.suffix != ".safetensors":
-            raise ValueError(f"{p}: expected a .safetensors file or a checkpoint folder")
-        st, config = p, _read_config([p.parent / CONFIG_NAME])
+            raise ValueError(f"{p}: expected a .safetensors file or a checkpoint folder"
+                             + (" (PyTorch .pt files are not read: use the repo's model.safetensors)"
+                                if p.suffix in (".pt", ".pth", ".bin") else ""))
+        st, config = p, config_for_safetensors(p)
     elif _is_orbax_dir(p / ORBAX_SUBDIR) or _is_orbax_dir(p):
         ckpt_dir = p / ORBAX_SUBDIR if _is_orbax_dir(p / ORBAX_SUBDIR) else p
         config = _read_config([ckpt_dir.parent / CONFIG_NAME, ckpt_dir / CONFIG_NAME])
         params = _load_orbax(ckpt_dir.absolute(), config, skip_track=skip_track, device_put=device_put)
         return cast_params(params, param_dtype), _final_config(config, skip_track)
     elif (p / SAFETENSORS_NAME).is_file():
-        st, config = p / SAFETENSORS_NAME, _read_config([p / CONFIG_NAME])
+        st, config = p / SAFETENSORS_NAME, config_for_safetensors(p / SAFETENSORS_NAME)
     else:
         raise FileNotFoundError(
             f"{p} holds neither an Orbax checkpoint written by save_orbax ({ORBAX_SUBDIR}/ + {CONFIG_NAME}) "

@@ -1,17 +1,23 @@
-"""`rvggt`: command-line front end.
+"""`rvggt`: command-line front end (argument parsing; the work is in `rvggt_jax.pipeline`).
 
-    rvggt convert SRC DST [...]           upstream checkpoint -> our format (see `convert`)
-    rvggt reconstruct IMAGES_DIR --weights CKPT --out OUT_DIR [options]
+    rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (see `convert`)
+    rvggt reconstruct INPUT --weights CKPT --out OUT_DIR [options]
+                                          INPUT: a folder of images or a video file;
+                                          CKPT: a local checkpoint or a hub repo id
+                                          (facebook/VGGT-1B: downloaded, converted once)
+    rvggt view OUT_DIR [--port P]         interactive 3D viewer (viser) on localhost
     rvggt demo [--out DIR]                the whole pipeline on bundled images with a
                                           tiny RANDOM-weight model (seconds)
+    rvggt --version
 
-`reconstruct` writes, in OUT_DIR: points.ply, cameras.json, sparse/*.txt (COLMAP
-text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/<stem>.png and
-trajectory.png; see `rvggt_jax.io.export.export_reconstruction`.
+`reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
+(COLMAP text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/,
+thumbnails/, trajectory.png (and frames/ for a video); see
+`rvggt_jax.io.export.export_reconstruction`.
 
-Failures exit non-zero with one line on stderr, `rvggt: error: ...` (set RVGGT_DEBUG=1
-for the traceback). Compiled programs are cached across runs in $RVGGT_CACHE_DIR
-(default ~/.cache/rvggt-jax/xla; RVGGT_CACHE_DIR=off disables it).
+Failures exit non-zero with `rvggt: error: ...` on stderr, details indented under it
+(set RVGGT_DEBUG=1 for the traceback). Compiled programs are cached across runs in
+$RVGGT_CACHE_DIR (default ~/.cache/rvggt-jax/xla; RVGGT_CACHE_DIR=off disables it).
 """
 
 from __future__ import annotations
@@ -19,29 +25,25 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
-from pathlib import Path
 from typing import Any, Sequence
 
-PROG = "rvggt"
-DEFAULT_CONF_THRESHOLD = "50%"
-EXAMPLES_DIR = Path(__file__).resolve().parent / "examples_data"
-DEMO_IMAGES = EXAMPLES_DIR / "images"
-DEMO_WEIGHTS = EXAMPLES_DIR / "tiny"
-
-RANDOM_WEIGHTS_NOTICE = (
-    "NOTE: the demo runs a tiny VGGT with RANDOM weights (rvggt_jax/examples_data/tiny): it exercises "
-    "the whole pipeline, the reconstruction itself is meaningless. For real results convert VGGT-1B "
-    "(`rvggt convert`) and run `rvggt reconstruct --weights ...`."
+from rvggt_jax.errors import CLIError, format_error, one_line
+from rvggt_jax.pipeline import (  # noqa: F401 - re-exported: the API of `rvggt_jax.cli` before the split
+    DEFAULT_CONF_THRESHOLD,
+    DEMO_IMAGES,
+    DEMO_WEIGHTS,
+    EXAMPLES_DIR,
+    PROG,
+    RANDOM_WEIGHTS_NOTICE,
+    demo,
+    enable_compilation_cache,
+    known_presets,
+    reconstruct,
+    select_frames,
+    warn,
 )
 
-
-class CLIError(Exception):
-    """A failure reported as one line on stderr."""
-
-    def __init__(self, message: str, code: int = 1):
-        super().__init__(message)
-        self.code = code
+_warn = warn  # the memory warning below (kept where the memory estimate is)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -52,53 +54,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 # ---------------------------------------------------------------------------------------
-# helpers
+# memory estimate (checked by the pipeline before inference)
 # ---------------------------------------------------------------------------------------
-
-
-def _one_line(msg: Any, limit: int = 400) -> str:
-    """`msg` on one line, cut to about `limit` characters."""
-    text = " ".join(str(msg).split())
-    return text if len(text) <= limit else text[: limit - 3].rstrip() + "..."
-
-
-def _write(text: str, file) -> None:
-    """Print a line without tearing an active progress bar."""
-    try:
-        from tqdm.auto import tqdm
-
-        tqdm.write(text, file=file)
-        file.flush()
-    except ImportError:  # pragma: no cover
-        print(text, file=file, flush=True)
-
-
-def _say(quiet: bool, *parts: Any) -> None:
-    if not quiet:
-        _write(" ".join(map(str, parts)), sys.stdout)
-
-
-def _warn(msg: str) -> None:
-    _write(f"{PROG}: warning: {_one_line(msg)}", sys.stderr)
-
-
-def known_presets() -> tuple[str, ...]:
-    from rvggt_jax.compression.config import PRESETS
-
-    return tuple(PRESETS)
-
-
-def select_frames(paths: Sequence[Path], max_frames: int | None) -> list[Path]:
-    """At most `max_frames` of `paths`, evenly spaced over the sorted list, first and
-    last included (all of them when `max_frames` is None or large enough)."""
-    paths = list(paths)
-    if max_frames is None or len(paths) <= max_frames:
-        return paths
-    if max_frames == 1:
-        return paths[:1]
-    n = len(paths)
-    idx = sorted({round(i * (n - 1) / (max_frames - 1)) for i in range(max_frames)})
-    return [paths[i] for i in idx]
 
 
 def _available_memory_bytes() -> tuple[int | None, str]:
@@ -171,195 +128,7 @@ def _check_memory(config: Any, frames: int, height: int, width: int, params: Any
 
 
 # ---------------------------------------------------------------------------------------
-# reconstruct
-# ---------------------------------------------------------------------------------------
-
-
-def _load_model(weights: Path, quiet: bool = True):
-    """`(params, config)` of a checkpoint, without the track head (unused here)."""
-    if not weights.exists():
-        raise CLIError(f"checkpoint not found: {weights}")
-    try:
-        from rvggt_jax import load_pretrained
-
-        return load_pretrained(str(weights), skip_track=True, progress=not quiet)
-    except CLIError:
-        raise
-    except Exception as e:
-        if type(e).__name__ == "CheckpointError":
-            raise CLIError(f"checkpoint {weights} does not fit the model: {_one_line(e)}") from None
-        raise CLIError(f"cannot load checkpoint {weights}: {_one_line(e)}") from None
-
-
-def reconstruct(images_dir: str | Path, weights: str | Path, out_dir: str | Path, *, preset: str | None = None,
-                mode: str = "crop", conf_threshold: str = DEFAULT_CONF_THRESHOLD, max_frames: int | None = None,
-                points_from: str = "depth", max_points: int | None = 2_000_000, quiet: bool = False) -> dict:
-    """Reconstruct the images of `images_dir` (sorted by name) and write every output
-    to `out_dir`. Returns the export summary. Raises `CLIError` with a one-line message."""
-    from tqdm.auto import tqdm
-
-    from rvggt_jax.io.export import export_reconstruction, parse_threshold, sanitize_cameras
-    from rvggt_jax.io.images import IMAGE_EXTENSIONS, ImageLoadError, find_images, load_images_with_info
-
-    images_dir, weights, out_dir = Path(images_dir), Path(weights), Path(out_dir)
-    # -- cheap checks first --------------------------------------------------------------
-    if mode not in ("crop", "pad"):
-        raise CLIError(f"unknown mode {mode!r}; use crop or pad")
-    try:
-        parse_threshold(conf_threshold)
-    except ValueError as e:
-        raise CLIError(str(e)) from None
-    if max_frames is not None and max_frames < 1:
-        raise CLIError(f"--max-frames must be at least 1; got {max_frames}")
-    if preset is not None and preset not in known_presets():
-        raise CLIError(f"unknown preset {preset!r}; known presets: {', '.join(known_presets())}")
-    if max_points is not None and max_points < 1:
-        raise CLIError(f"--max-points must be at least 1; got {max_points}")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise CLIError(f"output path exists and is not a folder: {out_dir}")
-    if points_from not in ("depth", "pointmap"):
-        raise CLIError(f"unknown point source {points_from!r}; use depth or pointmap")
-    try:
-        paths, skipped = find_images(images_dir)
-    except (FileNotFoundError, NotADirectoryError) as e:
-        raise CLIError(str(e)) from None
-    if not paths:
-        if not skipped:
-            raise CLIError(f"image folder is empty: {images_dir}")
-        raise CLIError(f"no images in {images_dir} ({len(skipped)} other entries skipped; "
-                       f"image files end in {', '.join(IMAGE_EXTENSIONS)})")
-    if not weights.exists():
-        raise CLIError(f"checkpoint not found: {weights}")
-    if skipped and not quiet:
-        _say(quiet, f"skipping {len(skipped)} non-image entr{'y' if len(skipped) == 1 else 'ies'} in {images_dir}")
-    chosen = select_frames(paths, max_frames)
-    if len(chosen) < len(paths):
-        _say(quiet, f"using {len(chosen)} of {len(paths)} images (--max-frames {max_frames}, evenly spaced)")
-
-    # -- images --------------------------------------------------------------------------
-    with tqdm(total=len(chosen), desc="loading images", unit="img", disable=quiet, leave=False) as bar:
-        def progress(it):
-            for x in it:
-                yield x
-                bar.update(1)
-
-        try:
-            images, infos = load_images_with_info(chosen, mode=mode, progress=progress)
-        except ImageLoadError as e:
-            bar.close()
-            raise CLIError(str(e)) from None
-    s, _, h, w = images.shape
-    _say(quiet, f"loaded {s} image{'s' * (s != 1)} -> network input {w}x{h} ({mode})")
-
-    # -- model ---------------------------------------------------------------------------
-    stages = ["loading weights", "checking memory", "running the model", "decoding cameras", "writing outputs"]
-    t0 = time.perf_counter()
-    with tqdm(total=len(stages), unit="step", disable=quiet, leave=False, desc=f"reconstruct ({stages[0]})",
-              bar_format="{desc}: {n_fmt}/{total_fmt} [{elapsed}]") as bar:
-        def stage(i):
-            bar.set_description_str(f"reconstruct ({stages[i]})", refresh=False)
-            if i:
-                bar.update(1)
-            else:
-                bar.refresh()
-
-        stage(0)
-        params, config = _load_model(weights, quiet)
-        if preset is not None:
-            try:
-                config = config.with_compression(preset)
-            except ValueError as e:
-                raise CLIError(_one_line(e)) from None
-        if points_from == "pointmap" and not config.enable_point:
-            raise CLIError(f"checkpoint {weights} has no point head; use --points depth")
-        stage(1)
-        _check_memory(config, s, h, w, params)
-        stage(2)
-        out = _run_model(params, images, config, weights)
-        stage(3)
-        extrinsic, intrinsic = _decode_cameras(out["pose_enc"], (h, w))
-        extrinsic, intrinsic, fixes = sanitize_cameras(extrinsic, intrinsic, (h, w))
-        for msg in fixes:
-            _warn(msg)
-        stage(4)
-        meta = dict(weights=str(weights), preset=config.compression.name, mode=mode,
-                    conf_threshold=str(conf_threshold), points_from=points_from)
-        summary = export_reconstruction(
-            out_dir, [p.name for p in chosen], images, infos, extrinsic, intrinsic,
-            out["depth"], out["depth_conf"], out.get("world_points"), out.get("world_points_conf"),
-            points_from=points_from, conf_threshold=conf_threshold, max_points=max_points, meta=meta)
-        bar.update(1)
-    summary["seconds"] = time.perf_counter() - t0
-    if summary["points"] == 0:
-        _warn(f"no point passed the confidence threshold {conf_threshold}; points.ply is empty "
-              f"(lower --conf-threshold, e.g. '0%')")
-    if summary.get("colmap_renamed"):
-        _warn(f"COLMAP image names cannot contain spaces: {len(summary['colmap_renamed'])} name(s) written with "
-              f"'_' in sparse/images.txt (e.g. {summary['colmap_renamed'][0][1]!r})")
-    _say(quiet, f"wrote {out_dir}: {summary['frames']} cameras, {summary['points']} points "
-                f"(confidence >= {summary['conf_threshold']:.4g}) in {summary['seconds']:.1f} s")
-    return summary
-
-
-def enable_compilation_cache() -> str | None:
-    """Keep compiled programs across runs (the first run of a shape compiles for a while).
-
-    Directory: $RVGGT_CACHE_DIR, else $XDG_CACHE_HOME/rvggt-jax/xla (~/.cache/...);
-    RVGGT_CACHE_DIR=off disables it; a cache directory already configured for JAX
-    (JAX_COMPILATION_CACHE_DIR) is left alone. Returns the directory in use, if any."""
-    import jax
-
-    try:
-        current = jax.config.jax_compilation_cache_dir
-        if current:
-            return current
-        d = os.environ.get("RVGGT_CACHE_DIR")
-        if d is None:
-            base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-            d = os.path.join(base, "rvggt-jax", "xla")
-        if d.strip().lower() in ("", "0", "off", "none", "false"):
-            return None
-        os.makedirs(d, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", d)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-        return d
-    except Exception:  # an unwritable cache only costs time
-        return None
-
-
-def _run_model(params, images, config, weights: Path) -> dict:
-    import jax
-    import numpy as np
-
-    from rvggt_jax import rvggt_forward
-
-    try:
-        from rvggt_jax.model import InputError
-    except ImportError:  # pragma: no cover
-        InputError = ValueError  # type: ignore[misc,assignment]
-    needed = [k for k, on in (("pose_enc", config.enable_camera), ("depth", config.enable_depth)) if not on]
-    if needed:
-        raise CLIError(f"checkpoint {weights} has no {' / '.join(needed)} head; reconstruct needs the camera and depth heads")
-    enable_compilation_cache()
-    try:
-        out = jax.jit(rvggt_forward)(params, images, config)
-        keys = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
-        return {k: np.asarray(out[k])[0] for k in keys if k in out}
-    except InputError as e:
-        raise CLIError(f"checkpoint {weights} does not fit the model: {_one_line(e)}") from None
-
-
-def _decode_cameras(pose_enc, hw):
-    import numpy as np
-
-    from rvggt_jax.geometry import pose_encoding_to_extri_intri
-
-    e, k = pose_encoding_to_extri_intri(pose_enc[None], hw)
-    return np.asarray(e)[0], np.asarray(k)[0]
-
-
-# ---------------------------------------------------------------------------------------
-# convert / demo
+# convert
 # ---------------------------------------------------------------------------------------
 
 
@@ -367,28 +136,9 @@ def _convert(argv: Sequence[str]) -> int:
     """`rvggt convert ...` = the converter's own command line (`python -m convert`)."""
     try:
         from convert.cli import main as entry
-
-        return int(entry(list(argv), prog=f"{PROG} convert") or 0)
-    except ImportError:
-        pass
-    try:
-        import convert as convert_pkg
     except ImportError as e:
-        raise CLIError(f"the converter is not installed ({_one_line(e)})") from None
-    entry = getattr(convert_pkg, "main", None)
-    if entry is None:
-        raise CLIError("the converter has no command-line entry (convert.main)")
-    return int(entry(list(argv)) or 0)
-
-
-def demo(out_dir: str | Path = "rvggt_demo", preset: str | None = None, quiet: bool = False) -> dict:
-    """Run `reconstruct` on the bundled images with the bundled random-weight model."""
-    print(RANDOM_WEIGHTS_NOTICE, flush=True)
-    if not DEMO_WEIGHTS.exists() or not DEMO_IMAGES.exists():
-        raise CLIError(f"bundled demo data missing under {EXAMPLES_DIR} (broken install?)")
-    summary = reconstruct(DEMO_IMAGES, DEMO_WEIGHTS, out_dir, preset=preset, quiet=quiet)
-    _say(quiet, f"demo outputs in {out_dir} (random weights: meaningless geometry)")
-    return summary
+        raise CLIError(f"the converter is not installed ({one_line(e)})") from None
+    return int(entry(list(argv), prog=f"{PROG} convert") or 0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -396,23 +146,44 @@ def demo(out_dir: str | Path = "rvggt_demo", preset: str | None = None, quiet: b
 # ---------------------------------------------------------------------------------------
 
 
+def _positive_float(text: str) -> float:
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from rvggt_jax import __version__
+
     parser = _Parser(prog=PROG, description="VGGT feed-forward 3D reconstruction in JAX.")
+    parser.add_argument("--version", action="version", version=f"{PROG} (rvggt-jax) {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
-    p = sub.add_parser("convert", help="convert an upstream VGGT checkpoint (.safetensors/.pt) to rvggt-jax",
+    p = sub.add_parser("convert", help="convert an upstream VGGT checkpoint (.safetensors) to rvggt-jax (Orbax)",
                        add_help=False)
     p.add_argument("args", nargs=argparse.REMAINDER, help="SRC DST [converter options]; see `rvggt convert --help`")
 
     presets = ", ".join(known_presets())
-    p = sub.add_parser("reconstruct", help="reconstruct a folder of images",
+    p = sub.add_parser("reconstruct", help="reconstruct a folder of images or a video",
                        description="Reconstruct cameras, depth and a point cloud from the images of a folder "
-                                   "(sorted by name; other files are skipped).")
-    p.add_argument("images_dir", metavar="IMAGES_DIR", help="folder of images (png, jpg, ...)")
+                                   "(sorted by name; other files are skipped) or the frames of a video.")
+    p.add_argument("images_dir", metavar="INPUT",
+                   help="folder of images (png, jpg, ...) or a video file (mp4, mov, mkv, webm, ...)")
     p.add_argument("--weights", required=True, metavar="CKPT",
-                   help="checkpoint: a folder with model.safetensors [+ config.json], a .safetensors file, "
-                        "or a converted (Orbax) folder")
-    p.add_argument("--out", required=True, metavar="OUT_DIR", help="output folder (created)")
+                   help="checkpoint: a Hugging Face repo id (facebook/VGGT-1B: downloaded into the hub cache and "
+                        "converted once under ~/.cache/rvggt-jax), a folder with model.safetensors "
+                        "[+ config.json], a .safetensors file, or a converted (Orbax) folder")
+    p.add_argument("--out", required=True, metavar="OUT_DIR",
+                   help="output folder (created; must be empty unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="reuse a non-empty output folder: delete the files the previous rvggt run there wrote "
+                        "(listed in its .rvggt-manifest.json) and nothing else")
     _common_options(p, presets)
     p.add_argument("--mode", default="crop", choices=("crop", "pad"),
                    help="crop: width 518, height centre-cropped to <= 518 (default); "
@@ -422,16 +193,36 @@ def build_parser() -> argparse.ArgumentParser:
                         "'P%%', at or above the P-th percentile of all confidences (default %(default)s; "
                         "'0%%' keeps every point)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
-                   help="use at most N images, evenly spaced over the sorted list")
+                   help="use at most N images (or video frames), evenly spaced")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--every", type=int, default=None, metavar="N",
+                   help="video: keep every N-th frame")
+    g.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+                   help="video: keep F frames per second (default for a video: 1)")
+    p.add_argument("--skip-bad", action="store_true",
+                   help="leave out images that cannot be read, with a warning naming each (default: stop)")
+    p.add_argument("--ignore-exif", action="store_true",
+                   help="read images as stored, ignoring their EXIF orientation (upstream's behaviour)")
     p.add_argument("--points", default="depth", choices=("depth", "pointmap"),
                    help="point cloud from the depth maps unprojected with the predicted cameras "
                         "(default) or from the point-map head")
     p.add_argument("--max-points", type=int, default=2_000_000, metavar="N",
                    help="cap on the points written to points.ply (random subset; default %(default)s)")
+    p.add_argument("--all-colmap-points", action="store_true",
+                   help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
+                        "at most 100000)")
+
+    p = sub.add_parser("view", help="interactive 3D viewer of a reconstruction (in the browser, localhost)",
+                       description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
+                                   "frustums with their images, frame selection) on http://localhost:PORT.")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="folder written by `rvggt reconstruct`")
+    p.add_argument("--port", type=int, default=8080, help="port on localhost (default %(default)s)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine only)")
 
     p = sub.add_parser("demo", help="run the pipeline on bundled images with a tiny RANDOM-weight model",
                        description=RANDOM_WEIGHTS_NOTICE)
     p.add_argument("--out", default="rvggt_demo", metavar="DIR", help="output folder (default %(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier demo run in DIR")
     _common_options(p, presets)
 
     from rvggt_jax.eval.cli import add_eval_parser
@@ -459,9 +250,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "reconstruct":
             reconstruct(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
                         conf_threshold=args.conf_threshold, max_frames=args.max_frames, points_from=args.points,
-                        max_points=args.max_points, quiet=args.quiet)
+                        max_points=args.max_points, quiet=args.quiet, overwrite=args.overwrite,
+                        every=args.every, fps=args.fps, skip_bad=args.skip_bad,
+                        exif_orientation=not args.ignore_exif, all_colmap_points=args.all_colmap_points)
+        elif args.command == "view":
+            from rvggt_jax.viewer import serve
+
+            serve(args.out_dir, port=args.port, host=args.host)
         elif args.command == "demo":
-            demo(args.out, preset=args.preset, quiet=args.quiet)
+            demo(args.out, preset=args.preset, quiet=args.quiet, overwrite=args.overwrite)
         elif args.command == "eval":
             from rvggt_jax.eval.cli import run_eval_command
 
@@ -470,7 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CLIError as e:
         if os.environ.get("RVGGT_DEBUG"):
             raise
-        print(f"{PROG}: error: {_one_line(e)}", file=sys.stderr, flush=True)
+        print(format_error(PROG, str(e)), file=sys.stderr, flush=True)
         return e.code
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
@@ -482,7 +279,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as e:  # one line, no traceback, for anything unexpected
         if os.environ.get("RVGGT_DEBUG"):
             raise
-        msg = _one_line(e)
+        msg = one_line(e)
         if "RESOURCE_EXHAUSTED" in msg or "out of memory" in msg.lower():
             msg = "out of memory (use fewer frames with --max-frames or a compression --preset): " + msg[:300]
         print(f"{PROG}: error: {type(e).__name__}: {msg} (set RVGGT_DEBUG=1 for the traceback)",

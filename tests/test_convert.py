@@ -280,7 +280,9 @@ def test_one_error_from_safetensors_file(tiny_raw, tiny_config, tmp_path):
     with pytest.raises(CheckpointError) as ei:
         load_safetensors(tmp_path / "model.safetensors", tiny_config)
     _assert_names_all(ei.value)
-    with pytest.raises(CheckpointError):
+    from rvggt_jax.checkpoint import ConfigInferredWarning
+
+    with pytest.raises(CheckpointError), pytest.warns(ConfigInferredWarning):  # no config.json: inferred
         load_pretrained(tmp_path)
 
 
@@ -375,11 +377,16 @@ def test_load_pretrained_safetensors_folder_and_file(tiny_params, tiny_config, t
     assert config == tiny_config
     assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(params))
     _assert_trees_equal(params, tiny_params)
-    # without a config.json beside it, VGGT-1B is assumed (and the tiny file does not fit)
+    # without a config.json beside it, the layout is inferred from the shapes, with a
+    # warning naming what the shapes do not fix (head counts)
+    from rvggt_jax.checkpoint import ConfigInferredWarning
+
     lonely = tmp_path / "weights.safetensors"
     lonely.symlink_to(TINY_ST.absolute())
-    with pytest.raises(CheckpointError):
-        load_pretrained(lonely)
+    with pytest.warns(ConfigInferredWarning, match="assumed: dino.num_heads=2"):
+        params, config = load_pretrained(lonely, device_put=False)
+    assert config.embed_dim == tiny_config.embed_dim and config.dpt_head == tiny_config.dpt_head
+    _assert_trees_equal(params, tiny_params)
 
 
 def test_load_pretrained_errors(tmp_path):

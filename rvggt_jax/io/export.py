@@ -5,7 +5,8 @@ x right, y down, z forward) and `intrinsic [3, 3]` pinhole in pixels, continuous
 pixel coordinates (the image spans `[0, W] x [0, H]`, as COLMAP).
 
 Files (see `export_reconstruction` for the folder layout):
-- `write_ply`: binary little-endian PLY, `x y z` float32 + `red green blue` uint8.
+- `write_ply` (`rvggt_jax.io.ply`): binary little-endian PLY, `x y z` float32 +
+  `red green blue` uint8 (+ `confidence` float32 and `frame` int32 in points.ply).
 - `write_colmap_text`: COLMAP text model `cameras.txt` (one PINHOLE camera per
   image), `images.txt` (world-to-camera quaternion + translation, empty 2D-point
   line), `points3D.txt` (points with colour, error 0 and an empty track). Readable by
@@ -27,6 +28,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from PIL import Image, ImageDraw
 
+from rvggt_jax.io.ply import colors_u8, read_ply, read_ply_properties, write_ply
+
 __all__ = [
     "camera_centers",
     "colorize",
@@ -34,6 +37,7 @@ __all__ = [
     "read_colmap_text",
     "read_depth_png",
     "read_ply",
+    "read_ply_properties",
     "rotmat_to_qvec",
     "qvec_to_rotmat",
     "sanitize_cameras",
@@ -53,74 +57,7 @@ PathLike = str | os.PathLike
 # PLY
 # ---------------------------------------------------------------------------------------
 
-_PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-
-
-def _colors_u8(colors: np.ndarray | None, n: int) -> np.ndarray:
-    """Colours [N, 3] uint8, or float in [0, 1] (scaled), or None (grey)."""
-    if colors is None:
-        return np.full((n, 3), 200, np.uint8)
-    colors = np.asarray(colors)
-    if colors.shape != (n, 3):
-        raise ValueError(f"colors must be [N, 3] with N = {n}; got {colors.shape}")
-    if colors.dtype == np.uint8:
-        return colors
-    return (np.clip(colors.astype(np.float64), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-def write_ply(path: PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY point cloud: points [N, 3] (float32 on disk), colors
-    [N, 3] uint8 or float in [0, 1] (None: grey)."""
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be [N, 3]; got {points.shape}")
-    n = points.shape[0]
-    rec = np.empty(n, dtype=_PLY_DTYPE)
-    rec["x"], rec["y"], rec["z"] = (points[:, i].astype(np.float32) for i in range(3))
-    c = _colors_u8(colors, n)
-    rec["red"], rec["green"], rec["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment written by rvggt-jax\n"
-        f"element vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        "end_header\n"
-    )
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
-
-
-def read_ply(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a PLY written by `write_ply` (binary little-endian, x y z float + r g b
-    uchar) -> points [N, 3] float32, colors [N, 3] uint8."""
-    with open(path, "rb") as f:
-        data = f.read()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise ValueError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in header:
-        raise ValueError(f"{path}: only binary_little_endian PLY is supported")
-    n = None
-    props = []
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            n = int(parts[2])
-        elif parts and parts[0] == "property":
-            props.append((parts[2], parts[1]))
-    types = {"float": "<f4", "uchar": "u1"}
-    dtype = np.dtype([(name, types[t]) for name, t in props])
-    if n is None or dtype != _PLY_DTYPE:
-        raise ValueError(f"{path}: unexpected PLY layout {props}")
-    body = data[end + len(b"end_header\n"):]
-    if len(body) != n * dtype.itemsize:
-        raise ValueError(f"{path}: {len(body)} bytes of vertex data for {n} vertices")
-    rec = np.frombuffer(body, dtype=dtype, count=n)
-    pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
-    cols = np.stack([rec["red"], rec["green"], rec["blue"]], axis=1)
-    return pts, cols
+_colors_u8 = colors_u8
 
 
 # ---------------------------------------------------------------------------------------
@@ -564,7 +501,7 @@ def write_trajectory_png(path: PathLike, extrinsics: np.ndarray, points: np.ndar
 
 def select_points(points: np.ndarray, conf: np.ndarray, colors: np.ndarray, valid: np.ndarray | None,
                   threshold: str | float = "50%", max_points: int | None = None,
-                  seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+                  seed: int = 0, return_index: bool = False) -> tuple:
     """Filter a point map by confidence.
 
     points [S, H, W, 3], conf [S, H, W], colors [S, H, W, 3] uint8, valid [S, H, W]
@@ -573,7 +510,8 @@ def select_points(points: np.ndarray, conf: np.ndarray, colors: np.ndarray, vali
     or above the P-th percentile of the confidences of valid pixels ("0%" keeps all).
     Non-finite points are dropped. At most `max_points` are kept (uniform random
     subset, fixed seed). Returns points [N, 3] float32, colors [N, 3] uint8 and the
-    absolute confidence threshold used.
+    absolute confidence threshold used; with `return_index`, also the kept points'
+    flat indices [N] into [S * H * W] (frame = index // (H * W)).
     """
     pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     cf = np.asarray(conf, dtype=np.float32).reshape(-1)
@@ -590,11 +528,21 @@ def select_points(points: np.ndarray, conf: np.ndarray, colors: np.ndarray, vali
     idx = np.flatnonzero(ok)
     if max_points is not None and len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, size=max_points, replace=False))
+    if return_index:
+        return pts[idx], col[idx].astype(np.uint8), abs_thr, idx
     return pts[idx], col[idx].astype(np.uint8), abs_thr
 
 
 def parse_threshold(threshold: str | float) -> float | tuple[float]:
-    """`"P%"` -> (P,) (a percentile in [0, 100]); a number or numeric string -> float."""
+    """`"P%"` -> (P,) (a percentile in [0, 100]); a number or numeric string -> float.
+    NaN and infinities are refused (a NaN threshold would keep no point, silently)."""
+    value = _parse_threshold(threshold)
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"bad confidence threshold {threshold!r}: must be a finite number or a percentage like '50%'")
+    return value
+
+
+def _parse_threshold(threshold: str | float) -> float | tuple[float]:
     if isinstance(threshold, str):
         s = threshold.strip()
         if s.endswith("%"):
@@ -616,14 +564,19 @@ def export_reconstruction(out_dir: PathLike, names: Sequence[str], images: np.nd
                           extrinsic: np.ndarray, intrinsic: np.ndarray, depth: np.ndarray, depth_conf: np.ndarray,
                           world_points: np.ndarray | None = None, world_points_conf: np.ndarray | None = None,
                           points_from: str = "depth", conf_threshold: str | float = "50%",
-                          max_points: int | None = 2_000_000, max_colmap_points: int = 100_000,
-                          meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                          max_points: int | None = 2_000_000, max_colmap_points: int | None = 100_000,
+                          meta: Mapping[str, Any] | None = None, write_scene: bool = True) -> dict[str, Any]:
     """Write every output of one reconstruction (one batch element) to `out_dir`:
 
-        points.ply                point cloud (confidence-filtered, image colours)
+        points.ply                point cloud (confidence-filtered, image colours,
+                                  per-point `confidence` and source `frame`)
+        scene.glb                 points + camera frustums (glTF, y up; `write_scene`)
+        thumbnails/<stem>.jpg     the network input, small (for `rvggt view`)
         cameras.json              per-image camera, in the ORIGINAL image's pixels,
                                   plus the network-input camera under "network"
-        sparse/{cameras,images,points3D}.txt     COLMAP text model (original pixels)
+        sparse/{cameras,images,points3D}.txt     COLMAP text model (original pixels);
+                                  points3D.txt holds a random subset of points.ply of at
+                                  most `max_colmap_points` (None: all of them)
         depth/<stem>.png          16-bit depth of the network input (scale in depth/depth_scale.json)
         depth_preview/<stem>.png  coloured depth (near = bright)
         trajectory.png            camera centres from above
@@ -664,8 +617,11 @@ def export_reconstruction(out_dir: PathLike, names: Sequence[str], images: np.nd
         pvalid = valid
     else:
         raise ValueError(f"points_from must be 'depth' or 'pointmap'; got {points_from!r}")
-    cloud, cloud_rgb, thr = select_points(pts, conf, colors, pvalid, conf_threshold, max_points)
-    write_ply(out / "points.ply", cloud, cloud_rgb)
+    cloud, cloud_rgb, thr, idx = select_points(pts, conf, colors, pvalid, conf_threshold, max_points,
+                                               return_index=True)
+    cloud_conf = conf.reshape(-1)[idx].astype(np.float32)
+    cloud_frame = (idx // (h * w)).astype(np.int32)
+    write_ply(out / "points.ply", cloud, cloud_rgb, extra=dict(confidence=cloud_conf, frame=cloud_frame))
 
     orig_k = np.stack([intrinsic[i] if info is None else info.intrinsic_to_original(intrinsic[i])
                        for i, info in enumerate(infos)])
@@ -676,7 +632,7 @@ def export_reconstruction(out_dir: PathLike, names: Sequence[str], images: np.nd
     json_meta.update(meta or {})
     write_cameras_json(out / "cameras.json", names, extrinsic, orig_k, sizes, extra=extra, meta=json_meta)
 
-    if len(cloud) > max_colmap_points:
+    if max_colmap_points is not None and len(cloud) > max_colmap_points:
         sel = np.sort(np.random.default_rng(1).choice(len(cloud), size=max_colmap_points, replace=False))
         cpts, crgb = cloud[sel], cloud_rgb[sel]
     else:
@@ -684,14 +640,37 @@ def export_reconstruction(out_dir: PathLike, names: Sequence[str], images: np.nd
     colmap_names = [n.replace(" ", "_") for n in names]
     write_colmap_text(out / "sparse", colmap_names, extrinsic, orig_k, sizes, cpts, crgb)
 
+    if write_scene:
+        from rvggt_jax.io.glb import write_glb
+
+        write_glb(out / "scene.glb", cloud, cloud_rgb, extrinsic, orig_k, sizes)
+
     stems = unique_stems(names)
+    write_thumbnails(out / "thumbnails", stems, images, valid)
     scale = write_depth_pngs(out / "depth", stems, depth, valid, preview_folder=out / "depth_preview")
     traj_pts = cloud[:: max(1, len(cloud) // 20000)]
     traj_rgb = cloud_rgb[:: max(1, len(cloud) // 20000)]
     write_trajectory_png(out / "trajectory.png", extrinsic, traj_pts, traj_rgb)
     return dict(out_dir=str(out), frames=s, points=int(len(cloud)), colmap_points=int(len(cpts)),
+                max_colmap_points=max_colmap_points,
                 conf_threshold=thr, depth_scale=scale, stems=stems,
                 colmap_renamed=[(a, b) for a, b in zip(names, colmap_names) if a != b])
+
+
+def write_thumbnails(folder: PathLike, stems: Sequence[str], images: np.ndarray, valid: np.ndarray,
+                     max_side: int = 256) -> None:
+    """`folder/<stem>.jpg`: each network input image [S, 3, H, W] in [0, 1], cut to its
+    content box (valid [S, H, W], padding left out) and shrunk to `max_side` pixels."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, stem in enumerate(stems):
+        rows, cols = np.flatnonzero(valid[i].any(1)), np.flatnonzero(valid[i].any(0))
+        arr = images[i].transpose(1, 2, 0)
+        if len(rows) and len(cols):
+            arr = arr[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+        im = Image.fromarray((np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8))
+        im.thumbnail((max_side, max_side))
+        im.save(folder / f"{stem}.jpg", quality=90)
 
 
 def _unproject(depth: np.ndarray, extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:

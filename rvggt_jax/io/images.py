@@ -9,6 +9,18 @@ white padding), without torch.
 (`ImageInfo`): the original size and the affine map from original pixel coordinates
 to network-input pixel coordinates, used to express the predicted intrinsics in the
 original image's pixels and to tell padding from image content.
+
+Where this departs from upstream (which calls `Image.open(p).convert("RGB")`):
+- the EXIF orientation is applied first (`ImageOps.exif_transpose`), so a phone photo
+  taken upright is read upright and `ImageInfo.width/height` are the upright size
+  (`exif_orientation=False` reads the stored pixels as upstream does);
+- 16-bit and 32-bit images (Pillow modes `I;16*`, `I`, `F`) are read by their range,
+  value / 65535 (`F` images already in [0, 1] as they are), then quantised to 8 bits
+  like every other image; `convert("RGB")` would clip them to a solid white image;
+- images with transparency in modes other than RGBA (`LA`, `PA`, `P` with a
+  transparent colour) are blended on white as upstream blends RGBA.
+Images without EXIF orientation, high bit depth or such transparency are read exactly as
+upstream reads them.
 """
 
 from __future__ import annotations
@@ -19,7 +31,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -103,12 +115,42 @@ def _check_mode(mode: str) -> None:
         raise ValueError(f"mode must be 'crop' or 'pad', got {mode!r}")
 
 
-def _open_rgb(path: str) -> Image.Image:
-    """Open, decode fully, blend RGBA on white and convert to RGB (upstream's steps)."""
+_HIGH_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I", "F")
+
+
+def _to_8bit(img: Image.Image) -> Image.Image:
+    """A single-channel 16/32-bit image -> mode "L", value / 65535 in [0, 1] -> 0..255.
+
+    Why: Pillow's convert("RGB") clips these modes at 255, so a 16-bit photo becomes a
+    solid white image and the run silently "succeeds" on garbage. Float ("F") images
+    whose values already lie in [0, 1] are taken as they are."""
+    a = np.asarray(img, dtype=np.float64)
+    finite = a[np.isfinite(a)]
+    if img.mode == "F" and finite.size and finite.min() >= 0.0 and finite.max() <= 1.0:
+        unit = a
+    else:
+        unit = a / 65535.0
+    unit = np.nan_to_num(unit, nan=0.0, posinf=1.0, neginf=0.0)
+    return Image.fromarray((np.clip(unit, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), "L")
+
+
+def _has_alpha(img: Image.Image) -> bool:
+    return img.mode in ("RGBA", "LA", "PA", "RGBa", "La") or (img.mode == "P" and "transparency" in img.info)
+
+
+def _open_rgb(path: str, exif_orientation: bool = True) -> Image.Image:
+    """Open, decode fully, apply the EXIF orientation (optional), blend transparency on
+    white and convert to RGB (upstream's steps, plus the ones named in the module doc)."""
     try:
         with Image.open(path) as img:
             img.load()
-            if img.mode == "RGBA":
+            if exif_orientation:
+                img = ImageOps.exif_transpose(img)
+            if img.mode in _HIGH_BIT_MODES:
+                img = _to_8bit(img)
+            if _has_alpha(img):
+                if img.mode != "RGBA":
+                    img = img.convert("RGBA")
                 background = Image.new("RGBA", img.size, (255, 255, 255, 255))
                 img = Image.alpha_composite(background, img)
             return img.convert("RGB")
@@ -131,6 +173,9 @@ def load_images_with_info(
     paths: Sequence[str | os.PathLike],
     mode: str = "crop",
     progress: Callable[[Iterable], Iterable] | None = None,
+    *,
+    exif_orientation: bool = True,
+    on_error: str = "raise",
 ) -> tuple[np.ndarray, list[ImageInfo]]:
     """Load and preprocess images as upstream's `load_and_preprocess_images`.
 
@@ -140,6 +185,11 @@ def load_images_with_info(
         at most 518) or "pad" (longest side 518, the other rounded to a multiple of 14,
         white-padded to 518 x 518).
       progress: optional wrapper of the path iterable (e.g. `tqdm`).
+      exif_orientation: apply the EXIF orientation tag (default); False reads the
+        stored pixels as upstream does.
+      on_error: "raise" (default) stops at the first unreadable image; "skip" leaves
+        it out (the returned infos then list only the images loaded: compare their
+        `path` with `paths` to see which were skipped).
 
     Returns:
       images `[S, 3, H, W]` float32 in [0, 1]; images of different sizes are
@@ -154,17 +204,24 @@ def load_images_with_info(
     if len(paths) == 0:
         raise ValueError("at least 1 image is required")
     _check_mode(mode)
+    if on_error not in ("raise", "skip"):
+        raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
 
     arrays: list[np.ndarray] = []
     infos: list[dict] = []
     it = progress(paths) if progress is not None else paths
     for path in it:
-        img = _open_rgb(path)
-        width, height = img.size
         try:
-            new_width, new_height = preprocessed_size(width, height, mode)
-        except ValueError as e:
-            raise ImageLoadError(f"cannot use image {path}: {e}") from None
+            img = _open_rgb(path, exif_orientation)
+            width, height = img.size
+            try:
+                new_width, new_height = preprocessed_size(width, height, mode)
+            except ValueError as e:
+                raise ImageLoadError(f"cannot use image {path}: {e}") from None
+        except ImageLoadError:
+            if on_error == "skip":
+                continue
+            raise
         img = img.resize((new_width, new_height), Image.Resampling.BICUBIC)
         # Upstream's ToTensor: uint8 -> float32, divided by 255 in float32.
         arr = np.asarray(img, dtype=np.uint8).transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
@@ -199,6 +256,8 @@ def load_images_with_info(
                 arrays[i] = _pad_white(arr, top, h_pad - top, left, w_pad - left)
                 infos[i]["ox"] += left
                 infos[i]["oy"] += top
+    if not arrays:
+        raise ImageLoadError(f"none of the {len(paths)} images could be read")
     images = np.stack(arrays).astype(np.float32, copy=False)
     H, W = images.shape[2:]
 
@@ -212,10 +271,11 @@ def load_images_with_info(
     return images, out_infos
 
 
-def load_images(paths: Sequence[str | os.PathLike], mode: str = "crop") -> np.ndarray:
+def load_images(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_orientation: bool = True) -> np.ndarray:
     """Images `[S, 3, H, W]` float32 in [0, 1], equal to upstream's
-    `load_and_preprocess_images(paths, mode)`; see `load_images_with_info`."""
-    return load_images_with_info(paths, mode)[0]
+    `load_and_preprocess_images(paths, mode)` (up to the departures in the module doc);
+    see `load_images_with_info`."""
+    return load_images_with_info(paths, mode, exif_orientation=exif_orientation)[0]
 
 
 def find_images(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
