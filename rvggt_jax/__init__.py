@@ -16,8 +16,8 @@ from rvggt_jax.config import VGGTConfig  # noqa: E402
 # Public names resolved on first use, so importing a submodule (rvggt_jax.layers) stays
 # cheap and does not pull in every head.
 _LAZY = {
-    "rvggt_forward": "rvggt_jax.queries",  # the model's, accepting query points as any array-like
-    "as_query_points": "rvggt_jax.queries",
+    "rvggt_forward": "rvggt_jax.model",
+    "as_query_points": "rvggt_jax.model",
     "InputError": "rvggt_jax.model",
     "load_pretrained": "rvggt_jax.checkpoint",
     "load_images": "rvggt_jax.io.images",

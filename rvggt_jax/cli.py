@@ -43,7 +43,6 @@ from rvggt_jax.pipeline import (  # noqa: F401 - re-exported: the API of `rvggt_
     warn,
 )
 
-_warn = warn  # the memory warning below (kept where the memory estimate is)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -51,80 +50,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D401 - argparse API
         raise CLIError(f"{message} (see `{self.prog} --help`)", code=2)
-
-
-# ---------------------------------------------------------------------------------------
-# memory estimate (checked by the pipeline before inference)
-# ---------------------------------------------------------------------------------------
-
-
-def _available_memory_bytes() -> tuple[int | None, str]:
-    """Memory of the default JAX device (accelerator limit, or host RAM for CPU)."""
-    try:
-        import jax
-
-        dev = jax.devices()[0]
-        stats = dev.memory_stats() if hasattr(dev, "memory_stats") else None
-        if stats and stats.get("bytes_limit"):
-            return int(stats["bytes_limit"]), f"{dev.platform.upper()} memory"
-    except Exception:  # pragma: no cover - best effort
-        pass
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024, "available host RAM"
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "host RAM"
-    except (ValueError, OSError, AttributeError):
-        return None, "memory"
-
-
-def estimate_memory_bytes(config: Any, frames: int, height: int, width: int, params: Any = None) -> int:
-    """Rough peak memory (bytes) of one forward pass of `frames` images of `height x width`.
-
-    float32: parameters + twice (scores and softmax) the largest attention score tensor
-    + the token activations, the kept aggregator layers and the DPT heads'
-    full-resolution maps. The score tensor of a global layer is [heads, queries,
-    K/V slots]: from `rvggt_jax.cost_report` (which knows the compression preset's
-    shapes) when available, else dense ([heads, S*P, S*P], P = 1 + registers + h*w
-    tokens per frame); frame attention is [S, heads, P, P].
-    """
-    ps = config.patch_size
-    p = config.patch_start_idx + (height // ps) * (width // ps)
-    n = frames * p
-    heads = config.num_heads
-    f32 = 4
-    score_elems = max(n * n, frames * p * p)
-    try:
-        import rvggt_jax
-
-        report = rvggt_jax.cost_report(config, frames, height, width)
-        score_elems = max(frames * p * p, *(
-            r["queries"] * r["kv_slots"] * (frames if r["kind"] == "frame" else 1) for r in report["layers"]))
-    except Exception:  # no cost model (or it cannot price this config): dense estimate
-        pass
-    scores = heads * score_elems * f32
-    tokens = n * config.embed_dim * f32
-    kept = len(config.needed_layers(False)) * n * 2 * config.embed_dim * f32
-    heads_maps = 2 * frames * height * width * config.dpt_head.features * f32 * 4
-    n_params = 0
-    if params is not None:
-        import jax
-
-        n_params = sum(int(getattr(x, "size", 0)) for x in jax.tree_util.tree_leaves(params))
-    return n_params * f32 + 2 * scores + 8 * tokens + kept + heads_maps
-
-
-def _check_memory(config: Any, frames: int, height: int, width: int, params: Any) -> None:
-    need = estimate_memory_bytes(config, frames, height, width, params)
-    have, what = _available_memory_bytes()
-    if have is not None and need > 0.9 * have:
-        _warn(f"this run needs about {need / 2**30:.1f} GiB ({frames} frames of {width}x{height}) but "
-              f"{what} is {have / 2**30:.1f} GiB: it will probably run out of memory; use fewer frames "
-              f"(--max-frames) or a compression preset (--preset)")
 
 
 # ---------------------------------------------------------------------------------------
@@ -234,6 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _common_options(p: argparse.ArgumentParser, presets: str) -> None:
     p.add_argument("--preset", default=None, metavar="NAME",
                    help=f"compression preset of the global attention ({presets}); default: the checkpoint's")
+    p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"),
+                   help="compute dtype of the aggregator (bfloat16: upstream's mixed precision, about half "
+                        "the memory; the heads stay float32; default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or messages (errors and warnings only)")
 
 
@@ -250,7 +178,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "reconstruct":
             reconstruct(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
                         conf_threshold=args.conf_threshold, max_frames=args.max_frames, points_from=args.points,
-                        max_points=args.max_points, quiet=args.quiet, overwrite=args.overwrite,
+                        max_points=args.max_points, quiet=args.quiet, overwrite=args.overwrite, dtype=args.dtype,
                         every=args.every, fps=args.fps, skip_bad=args.skip_bad,
                         exif_orientation=not args.ignore_exif, all_colmap_points=args.all_colmap_points)
         elif args.command == "view":
@@ -258,7 +186,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             serve(args.out_dir, port=args.port, host=args.host)
         elif args.command == "demo":
-            demo(args.out, preset=args.preset, quiet=args.quiet, overwrite=args.overwrite)
+            demo(args.out, preset=args.preset, quiet=args.quiet, overwrite=args.overwrite, dtype=args.dtype)
         elif args.command == "eval":
             from rvggt_jax.eval.cli import run_eval_command
 

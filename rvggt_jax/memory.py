@@ -99,3 +99,69 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
         preset=config.compression.name, argument_bytes=int(m.argument_size_in_bytes),
         output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
         alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds)
+
+
+# ---------------------------------------------------------------------------------------
+# Will it fit? (used by `rvggt reconstruct` before it runs anything)
+# ---------------------------------------------------------------------------------------
+
+MEMORY_LIMIT_ENV = "RVGGT_MEMORY_LIMIT_GB"
+
+
+class MemoryError_(RuntimeError):
+    """A forward that XLA plans to need more memory than the device has."""
+
+
+def device_memory_bytes() -> tuple[int | None, str]:
+    """(bytes, what) of the memory a forward can use: $RVGGT_MEMORY_LIMIT_GB when set,
+    else the default JAX device's limit (an accelerator), else the host's available RAM
+    (CPU); (None, ...) when unknown."""
+    import os
+
+    limit = os.environ.get(MEMORY_LIMIT_ENV)
+    if limit:
+        try:
+            value = float(limit)
+        except ValueError:
+            raise ValueError(f"{MEMORY_LIMIT_ENV} must be a number of GB; got {limit!r}") from None
+        return int(value * 1e9), f"the limit {MEMORY_LIMIT_ENV}={limit}"
+    try:
+        dev = jax.devices()[0]
+        stats = dev.memory_stats() if hasattr(dev, "memory_stats") else None
+        if stats and stats.get("bytes_limit"):
+            return int(stats["bytes_limit"]), f"this {dev.platform.upper()} ({dev.device_kind})"
+    except Exception:  # noqa: BLE001 - a backend without memory stats: fall back to the host
+        pass
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024, "this machine (available RAM)"
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "this machine (RAM)"
+    except (ValueError, OSError, AttributeError):
+        return None, "this machine"
+
+
+def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, param_dtype: Any = None,
+               batch: int = 1) -> MemoryReport:
+    """`memory_report` of the forward, raising `MemoryError_` with what to change when it
+    needs more than `device_memory_bytes()`. Returns the report when it fits."""
+    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype)
+    have, what = device_memory_bytes()
+    if have is not None and rep.total_bytes > have:
+        hints = []
+        if config.compression.is_dense:
+            hints.append("--preset regime")
+        if config.dtype == "float32":
+            hints.append("--dtype bfloat16")
+        # memory grows about linearly with the frames once they dominate
+        fit = max(1, int(frames * have / rep.total_bytes * 0.9))
+        if fit < frames:
+            hints.append(f"--max-frames {fit}")
+        raise MemoryError_(f"{frames} frames of {width}x{height} ({config.compression.name}, {config.dtype}) need "
+                           f"{rep.total_bytes / 1e9:.1f} GB, {what} has {have / 1e9:.1f} GB; try "
+                           + ", ".join(hints))
+    return rep

@@ -58,21 +58,41 @@ def check_images(images: Any, config: VGGTConfig) -> jax.Array:
     return jnp.asarray(images, jnp.float32)
 
 
+QUERY_HELP = "query_points are pixel (x, y) in frame 0 of the network input, shape [N, 2] or [B, N, 2]"
+
+
+def as_query_points(query_points: Any) -> jax.Array:
+    """Query points as users write them -> [N, 2] or [B, N, 2] float32.
+
+    A query point is a pixel (x, y) in frame 0 of the network input (the preprocessed
+    image, e.g. 518 x 392, not the original photo): x to the right, y down, continuous.
+    Lists, tuples, NumPy and JAX arrays of ints or floats are accepted (inside `jax.jit`
+    a list arrives as a list of scalars); anything else is an `InputError` saying what
+    was given."""
+    if query_points is None or isinstance(query_points, (str, bytes, dict, set)):
+        raise InputError(f"{QUERY_HELP}; got a {type(query_points).__name__}")
+    try:
+        qp = jnp.asarray(query_points)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{QUERY_HELP}; cannot read a {type(query_points).__name__} as numbers "
+                         f"({' '.join(str(e).split())[:200]})") from None
+    if qp.ndim not in (2, 3) or qp.shape[-1] != 2:
+        raise InputError(f"{QUERY_HELP}; got shape {tuple(qp.shape)}")
+    if qp.dtype == jnp.bool_ or not (jnp.issubdtype(qp.dtype, jnp.floating) or jnp.issubdtype(qp.dtype, jnp.integer)):
+        raise InputError(f"{QUERY_HELP}; got dtype {qp.dtype}")
+    return qp.astype(jnp.float32)
+
+
 def check_query_points(query_points: Any, batch: int) -> jax.Array:
-    """[N, 2] or [B, N, 2] pixel (x, y) in frame 0 -> [B, N, 2] float32."""
-    shape = tuple(np.shape(query_points))
-    if len(shape) not in (2, 3) or shape[-1] != 2:
-        raise InputError(f"query_points must be [N,2] or [B,N,2] pixel (x, y); got shape {shape}")
-    if not _is_float(query_points):
-        raise InputError(f"query_points must be float pixel coordinates; got dtype {jnp.result_type(query_points)}")
-    if len(shape) == 2:
-        query_points = query_points[None]
-        shape = (1,) + shape
-    if shape[0] != batch:
-        if shape[0] != 1:
-            raise InputError(f"query_points batch {shape[0]} does not match images batch {batch}")
-        query_points = jnp.broadcast_to(query_points, (batch,) + shape[1:])
-    return jnp.asarray(query_points, jnp.float32)
+    """`as_query_points`, then batched: [N, 2] or [B, N, 2] -> [B, N, 2] float32."""
+    qp = as_query_points(query_points)
+    if qp.ndim == 2:
+        qp = qp[None]
+    if qp.shape[0] != batch:
+        if qp.shape[0] != 1:
+            raise InputError(f"query_points batch {qp.shape[0]} does not match images batch {batch}")
+        qp = jnp.broadcast_to(qp, (batch,) + qp.shape[1:])
+    return qp
 
 
 def check_params(params: Params, config: VGGTConfig) -> None:

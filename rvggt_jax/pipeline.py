@@ -249,7 +249,8 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
                 mode: str = "crop", conf_threshold: str = DEFAULT_CONF_THRESHOLD, max_frames: int | None = None,
                 points_from: str = "depth", max_points: int | None = 2_000_000, quiet: bool = False,
                 overwrite: bool = False, every: int | None = None, fps: float | None = None,
-                skip_bad: bool = False, exif_orientation: bool = True, all_colmap_points: bool = False) -> dict:
+                skip_bad: bool = False, exif_orientation: bool = True, all_colmap_points: bool = False,
+                dtype: str = "float32") -> dict:
     """Reconstruct the images of a folder (sorted by name) or the frames of a video file
     (`every` N-th frame or `fps` per second, default 1 per second) and write every output
     to `out_dir`. Returns the export summary. Raises `CLIError` with a one-line message."""
@@ -272,6 +273,8 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
         raise CLIError(f"--max-frames must be at least 1; got {max_frames}")
     if preset is not None and preset not in known_presets():
         raise CLIError(f"unknown preset {preset!r}; known presets: {', '.join(known_presets())}")
+    if dtype not in ("float32", "bfloat16"):
+        raise CLIError(f"unknown dtype {dtype!r}; use float32 or bfloat16")
     if max_points is not None and max_points < 1:
         raise CLIError(f"--max-points must be at least 1; got {max_points}")
     if points_from not in ("depth", "pointmap"):
@@ -316,7 +319,7 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
         return _reconstruct(chosen, weights, local_weights, out_dir, preset=preset, mode=mode, conf_threshold=conf_threshold,
                             max_frames=max_frames, points_from=points_from, max_points=max_points, quiet=quiet,
                             skip_bad=skip_bad, exif_orientation=exif_orientation,
-                            all_colmap_points=all_colmap_points, source=source)
+                            all_colmap_points=all_colmap_points, source=source, dtype=dtype)
     finally:
         if not manifest.write() and created:  # also after a failure: the next --overwrite removes exactly these
             try:
@@ -326,7 +329,7 @@ def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *,
 
 
 def _reconstruct(chosen, weights, local_weights, out_dir, *, preset, mode, conf_threshold, max_frames, points_from, max_points,
-                 quiet, skip_bad, exif_orientation, all_colmap_points, source) -> dict:
+                 quiet, skip_bad, exif_orientation, all_colmap_points, source, dtype="float32") -> dict:
     """`reconstruct` once the inputs are chosen and the output folder is ready."""
     from tqdm.auto import tqdm
 
@@ -378,11 +381,20 @@ def _reconstruct(chosen, weights, local_weights, out_dir, *, preset, mode, conf_
                 raise CLIError(one_line(e)) from None
         if points_from == "pointmap" and not config.enable_point:
             raise CLIError(f"checkpoint {weights} has no point head; use --points depth")
-        stage(1)
-        # the memory estimate lives in cli.py (one place to replace it)
-        from rvggt_jax import cli
+        if dtype != config.dtype:
+            from rvggt_jax.checkpoint import cast_params
 
-        cli._check_memory(config, s, h, w, params)
+            config, params = config.with_dtype(dtype), cast_params(params, dtype)
+        stage(1)
+        # XLA's own plan of this forward (compiled, not run; the compilation cache makes
+        # the run reuse it): refuse before running rather than die in the middle
+        from rvggt_jax.memory import MemoryError_, check_fits
+
+        enable_compilation_cache()
+        try:
+            check_fits(config, s, h, w, param_dtype=dtype)
+        except (MemoryError_, ValueError) as e:
+            raise CLIError(str(e)) from None
         stage(2)
         out = run_model(params, images, config, weights)
         stage(3)
@@ -413,11 +425,12 @@ def _reconstruct(chosen, weights, local_weights, out_dir, *, preset, mode, conf_
 
 
 def demo(out_dir: str | Path = "rvggt_demo", preset: str | None = None, quiet: bool = False,
-         overwrite: bool = False) -> dict:
+         overwrite: bool = False, dtype: str = "float32") -> dict:
     """Run `reconstruct` on the bundled images with the bundled random-weight model."""
     print(RANDOM_WEIGHTS_NOTICE, flush=True)
     if not DEMO_WEIGHTS.exists() or not DEMO_IMAGES.exists():
         raise CLIError(f"bundled demo data missing under {EXAMPLES_DIR} (broken install?)")
-    summary = reconstruct(DEMO_IMAGES, DEMO_WEIGHTS, out_dir, preset=preset, quiet=quiet, overwrite=overwrite)
+    summary = reconstruct(DEMO_IMAGES, DEMO_WEIGHTS, out_dir, preset=preset, quiet=quiet, overwrite=overwrite,
+                          dtype=dtype)
     say(quiet, f"demo outputs in {out_dir} (random weights: meaningless geometry)")
     return summary
