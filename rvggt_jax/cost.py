@@ -9,8 +9,9 @@ executes, so the query and K/V-slot counts here are the shapes the forward pass 
 (tests/test_compression_cost.py checks this against a traced forward).
 
 What is counted (FLOPs, a multiply-add = 2, batch 1 unless `batch` is given):
-  * linear layers: 2 * rows * in * out (QKV on all N tokens, the output projection on
-    the N_m merged rows, the MLP on all N tokens);
+  * linear layers: 2 * rows * in * out (QKV on all N tokens, but K/V on the kept tokens
+    alone in K/V-only layers; the output projection on the N_m merged rows, the MLP on
+    all N tokens);
   * attention matmuls: 2 * Nq * Nk * D_qk + 2 * Nq * Nk * D_v per head, with D_qk the
     folded head dimension (d + 1 padded, when the size column is used) and Nk the K/V
     *slots* (what is computed, empty slots included);
@@ -33,8 +34,11 @@ from rvggt_jax.compression.plan import layer_plan, padded_head_dim
 from rvggt_jax.config import VGGTConfig
 
 
-def _block_linear_flops(rows_qkv: int, rows_proj: int, rows_mlp: int, c: int, hidden: int) -> int:
-    return 2 * rows_qkv * c * 3 * c + 2 * rows_proj * c * c + 2 * rows_mlp * c * hidden * 2
+def _block_linear_flops(rows_qkv: int, rows_proj: int, rows_mlp: int, c: int, hidden: int,
+                        rows_kv: int | None = None) -> int:
+    """Q (and K, V: on `rows_kv` rows when given) projections, output projection, MLP."""
+    rows_kv = rows_qkv if rows_kv is None else rows_kv
+    return 2 * rows_qkv * c * c + 2 * rows_kv * c * 2 * c + 2 * rows_proj * c * c + 2 * rows_mlp * c * hidden * 2
 
 
 def _attn_flops(nq: int, nk: int, heads: int, d_qk: int, d_v: int) -> int:
@@ -94,7 +98,8 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
             dqk = padded_head_dim(d, plan.size_column, cc.head_pad_multiple)
             dv = d if cc.head_pad_multiple == 1 or not plan.size_column else dqk
             attn = _attn_flops(q, kv, heads, dqk, dv)
-            lin = _block_linear_flops(N, q, N, c, hidden)
+            # K/V-only layers project K and V for the kept tokens alone
+            lin = _block_linear_flops(N, q, N, c, hidden, rows_kv=kv if plan.kind == "kv" else N)
             fixed, dyn, dup = plan.n_fixed, plan.n_dyn, plan.n_dup
             exp_fill = plan.n_fixed + plan.expected_dyn + plan.n_dup
         match = 2 * plan.match_pairs * c if plan.match == "compute" else 0
