@@ -9,8 +9,9 @@
 
 2. A real run on this CPU of a small layout (24 layers of width 64, one head of 64, DINO
    depth 1, small heads; random weights) on 168 x 224 images: wall time (median of the
-   repeats, the presets interleaved), the process' peak RSS growth, and the cost model's
-   predicted speedup (`cost_report`, aggregator trunk) next to the measured one:
+   repeats, the presets interleaved) of the whole forward and of the aggregator alone (the
+   part the cost model prices: `cost_report`'s predicted trunk speedup sits next to it),
+   the process' peak RSS growth and XLA's plan:
 
        python benchmarks/bench_memory.py run --frames 64 128 256
 
@@ -35,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import rvggt_jax  # noqa: E402
+from rvggt_jax.aggregator import aggregator_forward  # noqa: E402
 from rvggt_jax.config import CameraHeadConfig, DinoConfig, DPTHeadConfig, VGGTConfig  # noqa: E402
 
 
@@ -95,11 +97,13 @@ def peak_rss_mb() -> float:
 def run(args) -> list[str]:
     base = small_layout()
     params = random_params(base)
-    rows = ["| S | preset | wall median s | wall min s | speedup (wall) | predicted | measured/predicted | "
-            "peak RSS growth MiB | XLA total MiB |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = ["| S | preset | wall median s | wall min s | speedup (wall) | aggregator s | aggregator speedup | "
+            "predicted (aggregator) | measured/predicted (aggregator) | peak RSS growth MiB | XLA total MiB |",
+            "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in args.frames:
         images = jnp.asarray(np.random.default_rng(s).random((1, s, 3, args.height, args.width)), jnp.float32)
         fns, times, rss, plans = {}, {p: [] for p in args.presets}, {}, {}
+        agg_times = {p: [] for p in args.presets}
         for preset in args.presets:
             cfg = base.with_compression(preset).with_dtype(args.dtype)
             before = peak_rss_mb()
@@ -107,24 +111,32 @@ def run(args) -> list[str]:
             plans[preset] = fn.lower(params, images, cfg).compile().memory_analysis()
             jax.block_until_ready(fn(params, images, cfg)["depth"])  # compile + first run
             rss[preset] = peak_rss_mb() - before
-            fns[preset] = (fn, cfg)
+            agg = jax.jit(lambda p, x, cfg=cfg: {i: t.array() for i, t in aggregator_forward(
+                p["aggregator"], x, cfg, cfg.needed_layers(False))[0].items()})
+            jax.block_until_ready(agg(params, images))
+            fns[preset] = (fn, cfg, agg)
         for r in range(args.repeats):
             order = args.presets[r % len(args.presets):] + args.presets[:r % len(args.presets)]
             for preset in order:
-                fn, cfg = fns[preset]
+                fn, cfg, agg = fns[preset]
                 t0 = time.perf_counter()
                 jax.block_until_ready(fn(params, images, cfg)["depth"])
                 times[preset].append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                jax.block_until_ready(agg(params, images))
+                agg_times[preset].append(time.perf_counter() - t0)
         dense = statistics.median(times["dense"]) if "dense" in times else None
+        dense_agg = statistics.median(agg_times["dense"]) if "dense" in agg_times else None
         for preset in args.presets:
-            med = statistics.median(times[preset])
+            med, agg_med = statistics.median(times[preset]), statistics.median(agg_times[preset])
             pred = rvggt_jax.cost_report(base.with_compression(preset), s, args.height, args.width)["predicted_speedup"]
             speed = dense / med if dense else float("nan")
+            agg_speed = dense_agg / agg_med if dense_agg else float("nan")
             m = plans[preset]
             total = (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
                      - m.alias_size_in_bytes) / 2**20
-            row = (f"| {s} | {preset} | {med:.2f} | {min(times[preset]):.2f} | {speed:.2f}x | {pred:.2f}x | "
-                   f"{speed / pred:.2f} | {rss[preset]:.0f} | {total:.0f} |")
+            row = (f"| {s} | {preset} | {med:.2f} | {min(times[preset]):.2f} | {speed:.2f}x | {agg_med:.2f} | "
+                   f"{agg_speed:.2f}x | {pred:.2f}x | {agg_speed / pred:.2f} | {rss[preset]:.0f} | {total:.0f} |")
             print(row, flush=True)
             rows.append(row)
         del fns

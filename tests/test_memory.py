@@ -2,8 +2,8 @@
 
 At 200 frames of 168 x 224 (39,400 tokens, a 24-layer width-256 model) attention over the
 sequence dominates: the compressed path must need no more than dense (it was 3.7x
-before its layers ran as scanned bands over chunked, in-place blocks; reverting either
-fails this), and bfloat16 must need clearly less than float32."""
+at 100 frames of VGGT-1B before its layers ran as scanned bands over chunked, in-place
+blocks), and bfloat16 must need clearly less than float32."""
 
 import dataclasses
 
