@@ -100,7 +100,7 @@ def aggregator_forward(
     if num_prefix == special.shape[1]:
         # DINO's [CLS] + registers and our camera + registers are equally many: the special
         # tokens replace them in DINO's own buffer (no second [B*S, P, C] float32 copy)
-        tokens = dino.at[:, :num_prefix].set(special)
+        tokens = jax.lax.dynamic_update_slice_in_dim(dino, special, 0, axis=1)
     else:
         tokens = jnp.concatenate([special, patch_tokens], axis=1)
     num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
