@@ -194,15 +194,6 @@ def qkv_fn(p: Params, num_heads: int, eps: float, dtype: Any, parts: str = "qkv"
     return one
 
 
-def self_attention(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
-                   rope_freq: float | None = None) -> jax.Array:
-    """Upstream `Attention.forward`: x [B, N, C] -> [B, N, C], in x's dtype."""
-    b, n, c = x.shape
-    q, k, v = attention_qkv(p, x, num_heads, pos, rope_freq)
-    out = attention(q, k, v).reshape(b, n, c)
-    return linear(p["proj"], out)
-
-
 def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
           rope_freq: float | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
     """Pre-norm transformer block with LayerScale over B sequences: x [B, N, C] ->
