@@ -6,8 +6,8 @@ size bias, DINO, camera trunk, tracker) calls `attention`.
 
 It picks its kernel by name (`implementation`), like MaxText's attention op:
 
-  "blocked"  (the default, but for half precision on GPU) one (batch, head) pair and a cache-sized block of query
-             rows at a time (`query_blocks`), logits in float32, normalised after the
+  "blocked"  (the default, but for half precision on GPU) one (batch, head) pair and a
+             cache-sized block of query rows at a time (`query_blocks`), logits in float32, normalised after the
              value product. The key bias is added to each logits block.
   "cudnn"    (the default for bfloat16/float16 on GPU) `jax.nn.dot_product_attention`'s
              cuDNN flash kernel; "xla" is its plain XLA form (forms all logits: for
@@ -111,7 +111,7 @@ def _blocked(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
         return jax.lax.dynamic_update_index_in_dim(out, res.astype(out.dtype), i, 0)
 
     # the output buffer is made from q, not a constant: XLA would hoist a constant one to
-    # the program start and share it between calls (see layers.zeros_after)
+    # the program start and share it between calls (see chunks.zeros_after)
     out = jax.lax.fori_loop(0, b * h * n, body, zeros_after((b * h * n, rows, dv), q.dtype, q))
     return out.reshape(b, h, n * rows, dv)[:, :, :nq].transpose(0, 2, 1, 3)
 

@@ -81,39 +81,42 @@ def zeros_after(shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> jax.Array
     return jnp.broadcast_to(seed.astype(dtype).reshape(()), shape)
 
 
-def _token_slice(t: jax.Array, start, size: int, axis: int) -> jax.Array:
-    return dynamic_slice(t, start, size, axis)
+def fold_tokens(step, acc, inputs: tuple, n: int, axis: int, rows: int):
+    """The one chunk loop: acc = step(acc, start, size, *chunks) over chunks of `rows` of
+    the `n` tokens along `axis` of every input (a `fori_loop`), then the shorter tail."""
+    count = n // rows
+
+    def body(i, a):
+        return step(a, i * rows, rows, *[dynamic_slice(t, i * rows, rows, axis) for t in inputs])
+
+    acc = jax.lax.fori_loop(0, count, body, acc)
+    if count * rows < n:
+        acc = step(acc, count * rows, n - count * rows,
+                   *[jax.lax.slice_in_dim(t, count * rows, n, axis=axis) for t in inputs])
+    return acc
 
 
 def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_per_row: int = 0,
                dep: jax.Array | None = None, multiple: int = 8):
     """`fn(*chunks) -> pytree` over chunks of `rows` tokens along `axis` of every input,
-    the results stitched along the same axis (a `fori_loop` writing into zero buffers
-    made after `dep`, default the first input; then the tail). `rows` defaults to
-    `row_chunks(n, bytes_per_row)`; `fn` must be token-independent along `axis`."""
+    the results stitched along the same axis (written into zero buffers made after `dep`,
+    default the first input). `rows` defaults to `row_chunks(n, bytes_per_row)`; `fn`
+    must be token-independent along `axis`."""
     n = inputs[0].shape[axis]
     rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
     if rows >= n:
         return fn(*inputs)
-    count = n // rows
-    spec = jax.eval_shape(lambda *c: fn(*c), *[_token_slice(t, 0, rows, axis) for t in inputs])
+    spec = jax.eval_shape(lambda *c: fn(*c), *[dynamic_slice(t, 0, rows, axis) for t in inputs])
 
     def full(o):
         shape = list(o.shape)
         shape[axis] = n
         return zeros_after(tuple(shape), o.dtype, inputs[0] if dep is None else dep)
 
-    out = jax.tree.map(full, spec)
+    def step(acc, start, size, *chunk):
+        return jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, start, axis), acc, fn(*chunk))
 
-    def body(i, acc):
-        res = fn(*[_token_slice(t, i * rows, rows, axis) for t in inputs])
-        return jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, i * rows, axis), acc, res)
-
-    out = jax.lax.fori_loop(0, count, body, out)
-    if count * rows < n:
-        tail = fn(*[jax.lax.slice_in_dim(t, count * rows, n, axis=axis) for t in inputs])
-        out = jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, count * rows, axis), out, tail)
-    return out
+    return fold_tokens(step, jax.tree.map(full, spec), inputs, n, axis, rows)
 
 
 def update_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,
@@ -125,15 +128,10 @@ def update_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int
     rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
     if rows >= n:
         return fn(x, *inputs)
-    count = n // rows
 
-    def body(i, acc):
-        res = fn(_token_slice(acc, i * rows, rows, axis), *[_token_slice(t, i * rows, rows, axis) for t in inputs])
-        return jax.lax.dynamic_update_slice_in_dim(acc, res, i * rows, axis)
+    def step(acc, start, size, *chunk):
+        # x's chunk is read from the loop's own buffer, which is updated in place
+        res = fn(dynamic_slice(acc, start, size, axis), *chunk)
+        return jax.lax.dynamic_update_slice_in_dim(acc, res, start, axis)
 
-    x = jax.lax.fori_loop(0, count, body, x)
-    if count * rows < n:
-        res = fn(jax.lax.slice_in_dim(x, count * rows, n, axis=axis),
-                 *[jax.lax.slice_in_dim(t, count * rows, n, axis=axis) for t in inputs])
-        x = jax.lax.dynamic_update_slice_in_dim(x, res, count * rows, axis)
-    return x
+    return fold_tokens(step, x, inputs, n, axis, rows)

@@ -216,7 +216,7 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
     hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
     tables = () if pos is None else (pos.cos, pos.sin)
     per_sequence = n * hidden * 4
-    if per_sequence <= chunks.TOKEN_CHUNK_BYTES or b == 1 and n <= 8:
+    if per_sequence <= chunks.TOKEN_CHUNK_BYTES:
         def whole(xc, *tc):
             q, k, v = qkv_fn(p, num_heads, eps, dtype)(xc, *tc)
             return finish_rows(p, xc, linear(p["attn"]["proj"], attention(q, k, v).reshape(xc.shape[:2] + (c,))),
@@ -228,13 +228,24 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
 
     k, v = map_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), (x, *tables),
                       bytes_per_row=b * c * 4 * 2 + c * 4)
+    return attend_rows(p, x, tables, k, v, num_heads, eps=eps, dtype=dtype)
+
+
+def attend_rows(p: Params, x: jax.Array, tables: tuple, k: jax.Array, v: jax.Array, num_heads: int,
+                key_bias: jax.Array | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
+    """The query side of a block over a long sequence, in one in-place pass over token
+    chunks of x [B, N, C]: each chunk's Q (norm1, projection, qk-norm, RoPE with its rows
+    of `tables` (cos, sin) [1|B, N, 1, D], or ()), attention to the given K/V [B, Nk, H, D]
+    (with `key_bias` [B, Nk]), output projection, residual and MLP (`finish_rows`)."""
+    c = x.shape[-1]
+    q_of = qkv_fn(p, num_heads, eps, dtype, "q")
 
     def rows(xc, *tc):
-        (q,) = qkv_fn(p, num_heads, eps, dtype, "q")(xc, *tc)
-        o = attention(q, k, v).reshape(xc.shape[:2] + (c,))
+        o = attention(q_of(xc, *tc)[0], k, v, key_bias).reshape(xc.shape[:2] + (c,))
         return finish_rows(p, xc, linear(p["attn"]["proj"], o), eps, dtype)
 
-    return update_tokens(rows, x, tables, bytes_per_row=b * hidden * 4)
+    hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
+    return update_tokens(rows, x, tables, bytes_per_row=x.shape[0] * hidden * 4)
 
 
 def finish_rows(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None

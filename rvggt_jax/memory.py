@@ -38,6 +38,9 @@ class MemoryReport:
     temp_bytes: int
     alias_bytes: int
     compile_seconds: float
+    # the compiled forward itself, callable as compiled(params, images [B, S, 3, H, W],
+    # config): a run after the check need not compile again
+    compiled: Any = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
     def total_bytes(self) -> int:
@@ -98,7 +101,7 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
         frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, param_dtype=param_dtype,
         preset=config.compression.name, argument_bytes=int(m.argument_size_in_bytes),
         output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
-        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds)
+        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled)
 
 
 # ---------------------------------------------------------------------------------------
@@ -108,7 +111,7 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
 MEMORY_LIMIT_ENV = "RVGGT_MEMORY_LIMIT_GB"
 
 
-class MemoryError_(RuntimeError):
+class InsufficientMemoryError(RuntimeError):
     """A forward that XLA plans to need more memory than the device has."""
 
 
@@ -147,8 +150,9 @@ def device_memory_bytes() -> tuple[int | None, str]:
 
 def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, param_dtype: Any = None,
                batch: int = 1) -> MemoryReport:
-    """`memory_report` of the forward, raising `MemoryError_` with what to change when it
-    needs more than `device_memory_bytes()`. Returns the report when it fits."""
+    """`memory_report` of the forward, raising `InsufficientMemoryError` with what to
+    change when it needs more than `device_memory_bytes()`. Returns the report (with the
+    compiled forward) when it fits."""
     rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype)
     have, what = device_memory_bytes()
     if have is not None and rep.total_bytes > have:
@@ -161,7 +165,8 @@ def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, para
         fit = max(1, int(frames * have / rep.total_bytes * 0.9))
         if fit < frames:
             hints.append(f"--max-frames {fit}")
-        raise MemoryError_(f"{frames} frames of {width}x{height} ({config.compression.name}, {config.dtype}) need "
-                           f"{rep.total_bytes / 1e9:.1f} GB, {what} has {have / 1e9:.1f} GB; try "
-                           + ", ".join(hints))
+        raise InsufficientMemoryError(
+            f"{frames} frames of {width}x{height} ({config.compression.name}, {config.dtype}) need "
+            f"{rep.total_bytes / 1e9:.1f} GB, {what} has {have / 1e9:.1f} GB; try "
+            + ", ".join(hints))
     return rep

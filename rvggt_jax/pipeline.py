@@ -138,8 +138,9 @@ def enable_compilation_cache() -> str | None:
         return None
 
 
-def run_model(params, images, config, weights) -> dict:
-    """The forward pass on images [S, 3, H, W] -> numpy outputs of batch element 0."""
+def run_model(params, images, config, weights, compiled=None) -> dict:
+    """The forward pass on images [S, 3, H, W] -> numpy outputs of batch element 0.
+    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`)."""
     import jax
     import numpy as np
 
@@ -154,7 +155,10 @@ def run_model(params, images, config, weights) -> dict:
         raise CLIError(f"checkpoint {weights} has no {' / '.join(needed)} head; reconstruct needs the camera and depth heads")
     enable_compilation_cache()
     try:
-        out = jax.jit(rvggt_forward)(params, images, config)
+        if compiled is not None:
+            out = compiled(params, jax.numpy.asarray(images)[None], config)
+        else:
+            out = jax.jit(rvggt_forward)(params, images, config)
         keys = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
         return {k: np.asarray(out[k])[0] for k in keys if k in out}
     except InputError as e:
@@ -386,17 +390,17 @@ def _reconstruct(chosen, weights, local_weights, out_dir, *, preset, mode, conf_
 
             config, params = config.with_dtype(dtype), cast_params(params, dtype)
         stage(1)
-        # XLA's own plan of this forward (compiled, not run; the compilation cache makes
-        # the run reuse it): refuse before running rather than die in the middle
-        from rvggt_jax.memory import MemoryError_, check_fits
+        # XLA's own plan of this forward (compiled, not run; the run uses the same
+        # compiled program): refuse before running rather than die in the middle
+        from rvggt_jax.memory import InsufficientMemoryError, check_fits
 
         enable_compilation_cache()
         try:
-            check_fits(config, s, h, w, param_dtype=dtype)
-        except (MemoryError_, ValueError) as e:
+            report = check_fits(config, s, h, w, param_dtype=dtype)
+        except (InsufficientMemoryError, ValueError) as e:
             raise CLIError(str(e)) from None
         stage(2)
-        out = run_model(params, images, config, weights)
+        out = run_model(params, images, config, weights, compiled=report.compiled)
         stage(3)
         extrinsic, intrinsic = decode_cameras(out["pose_enc"], (h, w))
         extrinsic, intrinsic, fixes = sanitize_cameras(extrinsic, intrinsic, (h, w))

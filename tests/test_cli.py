@@ -209,13 +209,13 @@ def test_memory_check_refuses_with_what_to_change(monkeypatch):
     import dataclasses
 
     from rvggt_jax.config import VGGTConfig
-    from rvggt_jax.memory import MEMORY_LIMIT_ENV, MemoryError_, check_fits
+    from rvggt_jax.memory import MEMORY_LIMIT_ENV, InsufficientMemoryError, check_fits
 
     cfg = dataclasses.replace(VGGTConfig(), enable_track=False)
     monkeypatch.setenv(MEMORY_LIMIT_ENV, "16")
     rep = check_fits(cfg, 2, 392, 518)
     assert 5e9 < rep.total_bytes < 16e9  # 4.7 GB of float32 weights + activations
-    with pytest.raises(MemoryError_) as e:
+    with pytest.raises(InsufficientMemoryError) as e:
         check_fits(cfg, 200, 392, 518)
     msg = str(e.value)
     assert "need" in msg and "16.0 GB" in msg and "--preset regime" in msg and "--dtype bfloat16" in msg

@@ -171,14 +171,7 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             log_g = log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
         kk, vv = _rows_kv(p_block, x, sel, pos, heads, dtype)
         _log(layer=layer, kind="kv", queries=n, kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
-        q_of = layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, "q")
-
-        def rows(xc, cos, sin):
-            o = attention(q_of(xc, cos, sin)[0], kk, vv, log_g).reshape(xc.shape)
-            return layers.finish_rows(p_block, xc, layers.linear(p_block["attn"]["proj"], o), dtype=dtype)
-
-        hidden = p_block["mlp"]["fc1"]["kernel"].shape[-1]
-        return chunks.update_tokens(rows, x, (pos.cos, pos.sin), bytes_per_row=b * hidden * 4), state
+        return layers.attend_rows(p_block, x, (pos.cos, pos.sin), kk, vv, heads, log_g, dtype=dtype), state
 
     # ---- merging layer -------------------------------------------------------------------
     def compute():

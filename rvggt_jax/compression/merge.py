@@ -159,7 +159,7 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
     spec = jax.eval_shape(fn, *[chunks.dynamic_slice(t, 0, min(rows, n), 1) for t in inputs])
     sums = tuple(chunks.zeros_after((b * n_query,) + o.shape[2:], jnp.float32, x0) for o in spec)
 
-    def add(acc, group, *chunk):
+    def add(acc, start, size, group, *chunk):
         ids = (group + offsets).reshape(-1)
         vals = fn(*chunk)
         return tuple(a.at[ids].add(v.reshape((-1,) + v.shape[2:]).astype(jnp.float32), mode="promise_in_bounds")
@@ -167,17 +167,9 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
 
     group = match["group"]
     if rows >= n:
-        sums = add(sums, group, *inputs)
+        sums = add(sums, 0, n, group, *inputs)
     else:
-        count = n // rows
-
-        def body(i, acc):
-            return add(acc, chunks.dynamic_slice(group, i * rows, rows, 1),
-                       *[chunks.dynamic_slice(t, i * rows, rows, 1) for t in inputs])
-
-        sums = jax.lax.fori_loop(0, count, body, sums)
-        if count * rows < n:
-            sums = add(sums, group[:, count * rows:], *[t[:, count * rows:] for t in inputs])
+        sums = chunks.fold_tokens(add, sums, (group, *inputs), n, 1, rows)
     sizes = match["sizes"].reshape(b * n_query)
     return tuple((a / sizes.reshape((-1,) + (1,) * (a.ndim - 1))).reshape((b, n_query) + o.shape[2:]).astype(o.dtype)
                  for a, o in zip(sums, spec))
