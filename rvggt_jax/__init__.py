@@ -23,6 +23,8 @@ _LAZY = {
     "load_images": "rvggt_jax.io.images",
     "cost_report": "rvggt_jax.cost",
     "memory_report": "rvggt_jax.memory",
+    "sharded_forward": "rvggt_jax.sharded",
+    "frames_mesh": "rvggt_jax.sharded",
 }
 
 __all__ = ["VGGTConfig", *_LAZY]

@@ -67,12 +67,14 @@ def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype
 
 def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
                   dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
-                  backend: str | None = None) -> MemoryReport:
+                  backend: str | None = None, mesh: Any = None) -> MemoryReport:
     """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
     `height` x `width` (multiples of the patch size) under `config`, without running it.
 
     dtype: the compute dtype (default `config.dtype`); param_dtype: the aggregator's
     weight dtype (default: the compute dtype). query_points > 0 includes the track head.
+    mesh: plan `sharded_forward` over this mesh's "frames" axis instead (the figures are
+    then per device: replicated parameters, this device's frames and exchanges).
     """
     from rvggt_jax.model import InputError, rvggt_forward
 
@@ -89,12 +91,13 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     with_track = query_points > 0
     params = abstract_params(config, with_track=with_track, param_dtype=param_dtype)
     images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), jnp.float32)
-    args = (params, images, config)
-    if with_track:
-        args += (jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32),)
+    queries = jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32) if with_track else None
     t0 = time.perf_counter()
-    jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
-    compiled = jitted.lower(*args).compile()
+    if mesh is None:
+        jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
+        compiled = jitted.lower(params, images, config, *((queries,) if with_track else ())).compile()
+    else:
+        compiled = _sharded_plan(params, images, config, queries, mesh)
     m = compiled.memory_analysis()
     seconds = time.perf_counter() - t0
     return MemoryReport(
@@ -102,6 +105,24 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
         preset=config.compression.name, argument_bytes=int(m.argument_size_in_bytes),
         output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
         alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled)
+
+
+def _sharded_plan(params, images, config, queries, mesh):
+    """`sharded_forward` compiled for abstract inputs: parameters replicated, images split
+    over "frames" when their frames divide the axis (else replicated: the forward pads)."""
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    from rvggt_jax.frames import FRAMES_AXIS
+    from rvggt_jax.sharded import frame_shards, sharded_forward
+
+    shards = frame_shards(mesh, images.shape[1])
+    replicated = NamedSharding(mesh, P())
+    params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), params)
+    spec = P(None, FRAMES_AXIS) if shards.padded == shards.frames else P()
+    images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=NamedSharding(mesh, spec))
+    extra = () if queries is None else (jax.ShapeDtypeStruct(queries.shape, queries.dtype, sharding=replicated),)
+    fn = jax.jit(sharded_forward, static_argnames=("config", "mesh"))
+    return fn.lower(params, images, config, mesh, *extra).compile()
 
 
 # ---------------------------------------------------------------------------------------

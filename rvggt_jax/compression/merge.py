@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import chunks
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.compression.partition import Partition
 from rvggt_jax.compression.plan import LayerPlan
 
@@ -35,7 +36,8 @@ SIMILARITY_BLOCK_BYTES = 8 * 2**20
 
 
 def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chunk: int = 0,
-               dtype=None, transform=None) -> tuple[jax.Array, jax.Array]:
+               dtype=None, transform=None, shards: FrameShards | None = None, per_frame: int = 0
+               ) -> tuple[jax.Array, jax.Array]:
     """Cosine matching of src to dst tokens, in blocks.
 
     metric [B, N, C] (features, not yet normalised); src_idx [G, Na] and dst_idx [G, Nb]
@@ -45,7 +47,13 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     float32, stored in `dtype`, default the metric's); similarities accumulate in float32,
     at most SIMILARITY_BLOCK_BYTES of them (and at most `chunk` src rows, when > 0) at a
     time: the [Na, Nb] similarities never exist.
-    `transform` (per token, e.g. the block's norm1) is applied to gathered rows first."""
+    `transform` (per token, e.g. the block's norm1) is applied to gathered rows first.
+
+    Split over devices (`shards`; metric holds this device's tokens, `per_frame` per
+    frame): every device gets every dst's unit row (G = 1) and matches its own src, whose
+    results are gathered back into the global order; with G > 1 each group (a frame)
+    lives on one device and is matched there."""
+    sharded = shards is not None and shards.sharded
     dtype = metric.dtype if dtype is None else dtype
 
     def _unit(rows, dtype):
@@ -53,7 +61,21 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     b = metric.shape[0]
     g, na = src_idx.shape
     nb = dst_idx.shape[1]
+    order = None
+    if sharded and g == 1:
+        table, order = shards.local_positions(src_idx[0], per_frame)
+        dst_rows = jnp.broadcast_to(jnp.asarray(dst_idx[0], jnp.int32), (b, nb))
+        src_idx = shards.per_device(table)[None]
+    elif sharded:
+        src_table, dst_table, order = _group_tables(shards, src_idx, dst_idx, per_frame)
+        src_idx, dst_idx = shards.per_device(src_table), shards.per_device(dst_table)
     src_idx, dst_idx = jnp.asarray(src_idx, jnp.int32), jnp.asarray(dst_idx, jnp.int32)
+    na = src_idx.shape[1]
+
+    def gathered(score, arg):
+        if order is None:
+            return score, arg
+        return shards.gather_results(score, order, 1), shards.gather_results(arg, order, 1)
 
     def best(a, d):
         sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
@@ -70,12 +92,16 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     # by block inside the loop is 2x slower), then blocks of src rows against the dst
     src = _unit(chunks.take(metric, src_idx.reshape(-1), axis=1), dtype)
     if g == 1:
-        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C]
+        if sharded:
+            dst = shards.take_rows(metric, dst_rows, per_frame, fn=lambda r: _unit(r, dtype))
+        else:
+            dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C]
         rows = chunks.row_chunks(na, b * nb * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
         rows = min(rows, chunk) if chunk > 0 else rows
-        score, arg = chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows)
+        score, arg = gathered(*chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows))
         return score[:, None], arg[:, None]
 
+    g = src_idx.shape[0]
     frames = chunks.row_chunks(g, b * na * nb * 4, SIMILARITY_BLOCK_BYTES, multiple=1)
 
     def per_frames(a, di):  # [B, F, Na, C], [F, Nb] -> [B, F, Na] each
@@ -84,7 +110,29 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
         return best(a, d)
 
     src = src.reshape(b, g, na, -1)
-    return chunks.map_tokens(per_frames, (src, dst_idx[None]), axis=1, rows=frames, dep=metric)
+    return gathered(*chunks.map_tokens(per_frames, (src, dst_idx[None]), axis=1, rows=frames, dep=metric))
+
+
+def _group_tables(shards: FrameShards, src_idx: np.ndarray, dst_idx: np.ndarray, per_frame: int):
+    """The groups (frames) of each device for matching within groups: (src [devices,
+    G_max, Na] and dst [devices, G_max, Nb] local token indices, order [G] of the groups
+    in the devices' concatenated results). Padding entries point at local row 0 (their
+    results are dropped)."""
+    rows = shards.local * per_frame
+    owner = src_idx[:, 0] // rows
+    if not np.array_equal(owner, dst_idx[:, 0] // rows) or np.any(src_idx // rows != owner[:, None]):
+        raise ValueError("matching within groups needs each group's tokens on one device")
+    counts = np.bincount(owner, minlength=shards.devices)
+    g_max = max(1, int(counts.max()))
+    src_t = np.zeros((shards.devices, g_max, src_idx.shape[1]), np.int64)
+    dst_t = np.zeros((shards.devices, g_max, dst_idx.shape[1]), np.int64)
+    order = np.empty(src_idx.shape[0], np.int64)
+    for d in range(shards.devices):
+        mine = np.flatnonzero(owner == d)
+        src_t[d, :mine.size] = src_idx[mine] - d * rows
+        dst_t[d, :mine.size] = dst_idx[mine] - d * rows
+        order[mine] = d * g_max + np.arange(mine.size)
+    return src_t, dst_t, order
 
 
 def _inverse_permutation(order: jax.Array) -> jax.Array:
@@ -95,16 +143,20 @@ def _inverse_permutation(order: jax.Array) -> jax.Array:
 
 
 def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Partition, plan: LayerPlan,
-                  chunk: int, dtype=None, transform=None) -> dict[str, jax.Array]:
+                  chunk: int, dtype=None, transform=None, shards: FrameShards | None = None,
+                  per_frame: int = 0) -> dict[str, jax.Array]:
     """metric [B, N, C] (similarity features), protected_src [B, N_src] bool or None ->
     the match of this layer's plan (see the module docstring). The unit rows are
     normalised in float32 and stored in `dtype` (default: the metric's) block by block;
-    the cosine similarities accumulate in float32 (`best_match`)."""
+    the cosine similarities accumulate in float32 (`best_match`). Split over devices
+    (`shards`): metric holds this device's tokens; the match is sequence-wide, the same
+    on every device."""
+    found = dict(chunk=chunk, dtype=dtype, transform=transform, shards=shards, per_frame=per_frame)
     b = metric.shape[0]
     n_dst, n_src, r, U = plan.n_dst, plan.n_src, plan.r, plan.n_unm
 
     if plan.scope == "sequence":
-        score, arg = best_match(metric, part.src_pos[None], part.dst_pos[None], chunk, dtype, transform)
+        score, arg = best_match(metric, part.src_pos[None], part.dst_pos[None], **found)
         score, arg = score[:, 0], arg[:, 0]  # [B, N_src], arg indexes dst_pos
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
@@ -118,7 +170,7 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Part
         r_f = plan.r_frame
         u_f = n_src_f - r_f
         # [B, S-1, n_src_f], arg local to the frame's dst
-        score, arg = best_match(metric, part.src_pos_f, part.dst_pos[part.dst_rank_f], chunk, dtype, transform)
+        score, arg = best_match(metric, part.src_pos_f, part.dst_pos[part.dst_rank_f], **found)
         arg = jnp.take(jnp.asarray(part.dst_rank_f, jnp.int32), arg + jnp.arange(s1, dtype=jnp.int32)[:, None]
                        * part.dst_rank_f.shape[1], mode="clip")
         if protected_src is not None:
@@ -170,9 +222,21 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
         sums = add(sums, 0, n, group, *inputs)
     else:
         sums = chunks.fold_tokens(add, sums, (group, *inputs), n, 1, rows)
-    sizes = match["sizes"].reshape(b * n_query)
-    return tuple((a / sizes.reshape((-1,) + (1,) * (a.ndim - 1))).reshape((b, n_query) + o.shape[2:]).astype(o.dtype)
-                 for a, o in zip(sums, spec))
+    sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
+    sizes = match["sizes"]
+    return tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype) for a, o in zip(sums, spec))
+
+
+def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
+    """Float32 sums [B, rows, ...] of values [B, N, ...] over the groups group [B, N]
+    (tokens whose group is outside [0, rows) are left out): one block of the group sums
+    (over devices, the block `ring_sum_scatter` is making)."""
+    b = values.shape[0]
+    inside = (group >= 0) & (group < rows)
+    ids = jnp.where(inside, group + (jnp.arange(b, dtype=jnp.int32) * rows)[:, None], b * rows).reshape(-1)
+    flat = values.reshape((-1,) + values.shape[2:]).astype(jnp.float32)
+    sums = chunks.zeros_after((b * rows,) + values.shape[2:], jnp.float32, values)
+    return sums.at[ids].add(flat, mode="drop").reshape((b, rows) + values.shape[2:])
 
 
 def unmerge(y: jax.Array, match: dict[str, jax.Array]) -> jax.Array:

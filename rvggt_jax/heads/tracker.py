@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import layers
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.config import TrackHeadConfig
 
 Params = Mapping[str, Any]
@@ -361,18 +362,24 @@ def update_former(p: Params, x: jax.Array, num_heads: int = UPDATE_FORMER_NUM_HE
 
 
 def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config: TrackHeadConfig,
-                    iters: int | None = None, down_ratio: int = 1
+                    iters: int | None = None, down_ratio: int = 1, shards: FrameShards | None = None
                     ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Upstream `BaseTrackerPredictor.forward` (inference; sigmoid applied).
 
     query_points [B, N, 2] pixel (x, y) in frame 0 of the images; fmaps [B, S, h, w, C]
     (h, w = image size / (stride * down_ratio)). Returns (coords [iters, B, S, N, 2] in
     image pixels, one entry per refinement iteration; vis [B, S, N]; conf [B, S, N] or
-    None when `config.predict_conf` is off). Frame 0 always returns the query."""
+    None when `config.predict_conf` is off). Frame 0 always returns the query.
+
+    Split over devices (`shards`): fmaps and the results hold this device's frames; the
+    update transformer, which attends across frames, runs on every frame's [B, N, D]
+    inputs on every device (gathered each iteration) and each keeps its frames."""
     if query_points.ndim != 3 or query_points.shape[-1] != 2:
         raise ValueError(f"query_points must be [B, N, 2], got shape {query_points.shape}")
     b, n, _ = query_points.shape
     fb, s, h, w, c = fmaps.shape
+    shards = FrameShards.single(s) if shards is None else shards
+    first = (shards.frame_ids() == 0)[None, :, None, None]  # [1, S, 1, 1]: global frame 0
     if fb != b:
         raise ValueError(f"query_points batch {b} != feature maps batch {fb}")
     iters = config.iters if iters is None else iters
@@ -386,12 +393,12 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
     if down_ratio > 1:
         query = query / float(down_ratio)
     query = query / float(config.stride)  # [B, N, 2] in feature pixels
-    query_feat = sample_features(fmaps[:, 0], query)  # [B, N, C]
+    query_feat = shards.first(sample_features(fmaps[:, 0], query)[:, None], 1)  # [B, N, C], frame 0's
 
     d_model = p["query_ref_token"].shape[-1]  # 3C + 4
     pos = sample_grid_embed(d_model, (h, w), query)  # [B, N, D]
     ref = p["query_ref_token"][0]  # [2, D]: frame 0, frames >= 1
-    ref = jnp.concatenate([ref[:1], jnp.broadcast_to(ref[1:], (s - 1, d_model))], axis=0)
+    ref = jnp.where(first[0, :, :, 0], ref[0], ref[1])  # [S, D]
     bias = pos[:, :, None, :] + ref  # [B, N, S, D] added to the transformer input
 
     coords0 = jnp.broadcast_to(query[:, None], (b, s, n, 2))
@@ -400,17 +407,17 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
     def step(carry, _):
         coords, feats = carry  # [B, S, N, 2], [B, S, N, C]
         corr = layers.mlp(p["corr_mlp"], correlation_features(pyramid, feats, coords, radius))
-        flows = coords - coords[:, :1]
+        flows = coords - query[:, None]  # (frame 0's coords are the query)
         flows_emb = jnp.concatenate(
             [flow_embedding(flows, c // 2), flows / FLOW_MAX_SCALE, flows / FLOW_MAX_SCALE], axis=-1)
         x = jnp.concatenate([flows_emb, corr, feats], axis=-1)  # [B, S, N, D]
-        x = jnp.swapaxes(x, 1, 2) + bias  # [B, N, S, D]
-        delta = jnp.swapaxes(update_former(p["updateformer"], x), 1, 2)  # [B, S, N, 2 + C]
+        x = shards.gather(jnp.swapaxes(x, 1, 2) + bias, 2)  # [B, N, S, D], every frame
+        delta = jnp.swapaxes(shards.local_part(update_former(p["updateformer"], x), 2), 1, 2)  # [B, S, N, 2 + C]
         # ffeat_norm is GroupNorm(1, C) on [B*N*S, C] rows: a LayerNorm over C.
         feats = feats + layers.gelu(layers.linear(p["ffeat_updater"]["0"],
                                                   layers.layer_norm(p["ffeat_norm"], delta[..., 2:])))
         coords = coords + delta[..., :2]
-        coords = jnp.concatenate([coords0[:, :1], coords[:, 1:]], axis=1)
+        coords = jnp.where(first, coords0, coords)
         return (coords, feats), coords * scale
 
     (_, feats), coord_preds = jax.lax.scan(step, (coords0, feats0), None, length=iters)
