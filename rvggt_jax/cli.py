@@ -58,9 +58,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _convert(argv: Sequence[str]) -> int:
-    """`rvggt convert ...` = the converter's own command line (`python -m convert`)."""
+    """`rvggt convert ...` = the converter's own command line (`python -m rvggt_jax.convert`)."""
     try:
-        from convert.cli import main as entry
+        from rvggt_jax.convert.cli import main as entry
     except ImportError as e:
         raise CLIError(f"the converter is not installed ({one_line(e)})") from None
     return int(entry(list(argv), prog=f"{PROG} convert") or 0)
