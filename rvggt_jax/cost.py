@@ -101,7 +101,7 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
             # K/V-only layers project K and V for the kept tokens alone
             lin = _block_linear_flops(N, q, N, c, hidden, rows_kv=kv if plan.kind == "kv" else N)
             fixed, dyn, dup = plan.n_fixed, plan.n_dyn, plan.n_dup
-            exp_fill = plan.n_fixed + plan.expected_dyn + plan.n_dup
+            exp_fill = plan.n_fixed + plan.expected_dyn + plan.expected_dup
         match = 2 * plan.match_pairs * c if plan.match == "compute" else 0
         total = attn + lin + match
         rows.append(dict(

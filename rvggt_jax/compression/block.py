@@ -218,17 +218,18 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
 
     if plan.n_dup:
-        # The authors' artefact: the protected tokens once more, un-merged, size 1.
+        # The authors' artefact: the protected dst tokens once more, un-merged, size 1.
         ppos = state["protected_pos"]
         dk, dv = _rows_kv(p_block, x, ppos, pos, heads, dtype)
         kk = jnp.concatenate([kk, dk], axis=1)
         vv = jnp.concatenate([vv, dv], axis=1)
         g = jnp.concatenate([g, jnp.ones(ppos.shape, jnp.float32)], axis=1)
-        dup_ok = jnp.ones(ppos.shape, bool)
+        # only protected dst come twice: the authors drop protected src from both lists
+        dup_ok = jnp.take(jnp.asarray(part.is_dst), ppos, mode="clip")
         if plan.kv_mode == "select" and not (cc.kv_protect_saliency and cc.protect == "saliency"):
             keep = jnp.asarray(kv_static_keep(geom.frames, geom.h, geom.w, geom.num_special, plan.tile,
                                               cc.phase_shift, cc.anchor))
-            dup_ok = jnp.take(keep, ppos, mode="clip")
+            dup_ok = dup_ok & jnp.take(keep, ppos, mode="clip")
         if valid is None:
             valid = jnp.ones(g.shape[:1] + (g.shape[1] - ppos.shape[1],), bool)
         valid = jnp.concatenate([valid, dup_ok], axis=1)

@@ -6,7 +6,8 @@ Query layout of a merging layer: [dst (N_dst, static order) ; unmerged src (U,
 data-dependent)], N_m = N_dst + U = N - r. K/V slots: the dst kept for static reasons
 (`kv_fixed`, static indices), then `n_dyn` slots compacted from the data-dependent
 candidates (unmerged src on the sub-grid; Psi-protected tokens in the paper variant),
-then `n_dup` duplicates of the protected tokens (authors' artefact, off by default).
+then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
+default; a slot whose protected token is a src stays empty).
 Slots left empty are masked through the size column (g = 0 -> a large negative finite
 logit).
 """
@@ -46,9 +47,10 @@ class LayerPlan:
     kv_mode: str  # "all" (every query token is a key) | "select"
     n_fixed: int  # static K/V slots (always filled)
     n_dyn: int  # data-dependent K/V slots (bound)
-    n_dup: int  # duplicated protected tokens among the keys
+    n_dup: int  # K/V slots for duplicated protected dst (a bound: a protected src leaves its slot empty)
     n_kv: int  # K/V slots in total
     expected_dyn: float  # expected filled dynamic slots (src survival independent of position)
+    expected_dup: float  # expected filled duplicate slots
     masked: bool  # some K/V slot may be empty
     size_column: bool  # the attention gets the extra Q/K column
     match: str  # "none" | "compute" | "reuse"
@@ -58,11 +60,6 @@ class LayerPlan:
     r_frame: int  # r per frame (frame scope)
     match_pairs: int  # src x dst similarity pairs evaluated when match == "compute"
     protect_per_frame: int  # kp (saliency protection)
-
-    @property
-    def kv_filled_max(self) -> int:
-        """Slots that can be filled at most (the static ones plus every dynamic one)."""
-        return self.n_kv
 
 
 def _merge_counts(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, ns: int):
@@ -100,6 +97,22 @@ def _protected_count(cc: CompressionConfig, frames: int, h: int, w: int, ns: int
     return 0
 
 
+def _expected_duplicates(cc: CompressionConfig, part, keep: np.ndarray | None, frames: int, h: int, w: int,
+                         ns: int) -> float:
+    """Expected duplicated protected tokens: those that are dst (and kept as K/V when
+    `keep` [N] masks the duplicates). Exact for stride protection; for saliency, the
+    top patches of frames >= 1 are taken to fall anywhere in their frame."""
+    ok = part.is_dst if keep is None else part.is_dst & keep
+    if cc.protect == "stride":
+        return float(ok[stride_protected(frames * (ns + h * w), cc.alpha)].sum())
+    L = ns + h * w
+    pos = np.arange(L, frames * L)
+    later_patches = pos[pos % L >= ns]  # where saliency protection can fall
+    if not later_patches.size:
+        return 0.0
+    return _protected_count(cc, frames, h, w, ns) * float(ok[later_patches].mean())
+
+
 @functools.lru_cache(maxsize=4096)
 def layer_plan(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, ns: int) -> LayerPlan:
     L = ns + h * w
@@ -111,7 +124,7 @@ def layer_plan(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, n
     if kind in ("dense", "frame"):
         return LayerPlan(kind=kind, r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all",
                          n_fixed=L if kind == "frame" else N, n_dyn=0, n_dup=0,
-                         n_kv=L if kind == "frame" else N, expected_dyn=0.0, masked=False,
+                         n_kv=L if kind == "frame" else N, expected_dyn=0.0, expected_dup=0.0, masked=False,
                          size_column=False, match="none", match_key=None, r_frame=0, match_pairs=0, **base)
 
     r, r_f, n_dst, n_src = _merge_counts(cc, layer, frames, h, w, ns)
@@ -125,17 +138,17 @@ def layer_plan(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, n
         # No merging: queries are the tokens in their own order.
         if tile == (1, 1):
             return LayerPlan(kind="dense", r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all",
-                             n_fixed=N, n_dyn=0, n_dup=0, n_kv=N, expected_dyn=0.0, masked=False,
-                             size_column=False, match="none", match_key=None, r_frame=0, match_pairs=0,
-                             **base)
+                             n_fixed=N, n_dyn=0, n_dup=0, n_kv=N, expected_dyn=0.0, expected_dup=0.0,
+                             masked=False, size_column=False, match="none", match_key=None, r_frame=0,
+                             match_pairs=0, **base)
         n_fixed = int(keep.sum())
         n_dyn = min(N - n_fixed, p_max) if psi_kv else 0
         # Expected protected non-kept patches: protection independent of the grid.
         exp_dyn = p_max * (1.0 - n_fixed / N) if psi_kv else 0.0
         return LayerPlan(kind="kv", r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="select",
                          n_fixed=n_fixed, n_dyn=n_dyn, n_dup=0, n_kv=n_fixed + n_dyn, expected_dyn=exp_dyn,
-                         masked=n_dyn > 0, size_column=n_dyn > 0, match="none", match_key=None, r_frame=0,
-                         match_pairs=0, **base)
+                         expected_dup=0.0, masked=n_dyn > 0, size_column=n_dyn > 0, match="none",
+                         match_key=None, r_frame=0, match_pairs=0, **base)
 
     part = partition(frames, h, w, ns, cc.dst_seed)
     U = n_src - r
@@ -168,10 +181,13 @@ def layer_plan(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, n
             n_dyn = min(pool, n_dyn + p_max)
             exp_dyn = min(float(n_dyn), exp_dyn + p_max * (1.0 - (n_fixed + e_src) / max(n_dst + n_src, 1)))
         dup_masked = not psi_kv
-    masked = n_dyn > 0 or (n_dup > 0 and dup_masked)
+    exp_dup = _expected_duplicates(cc, part, keep if dup_masked else None, frames, h, w, ns) if n_dup else 0.0
+    # a duplicate slot is empty when its protected token is a src (or off the K/V grid)
+    masked = n_dyn > 0 or n_dup > 0
     return LayerPlan(kind="merge", r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query, kv_mode=kv_mode,
                      n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
-                     expected_dyn=exp_dyn, masked=masked, size_column=masked or cc.size_bias,
+                     expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
+                     size_column=masked or cc.size_bias,
                      match=match, match_key=key, r_frame=r_f, match_pairs=pairs, **base)
 
 
