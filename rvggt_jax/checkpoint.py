@@ -21,7 +21,7 @@ import logging
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping
 
 from rvggt_jax.config import VGGTConfig
 # Defined with the converter (which raises them too); imported here for the loaders and

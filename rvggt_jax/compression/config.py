@@ -19,7 +19,6 @@ See docs/method.md for every choice and the deviations from the authors' code.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 

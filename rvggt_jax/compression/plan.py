@@ -24,7 +24,6 @@ from rvggt_jax.compression.config import CompressionConfig
 from rvggt_jax.compression.partition import (
     _ro,
     kv_static_keep,
-    num_cells,
     partition,
     saliency_protect_count,
     stride_protected,
