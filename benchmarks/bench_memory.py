@@ -50,7 +50,7 @@ def small_layout() -> VGGTConfig:
 def random_params(config: VGGTConfig, seed: int = 0) -> dict:
     """A converted-layout tree for `config` with random weights: kernels N(0, 1/fan_in),
     norm scales 1, biases 0, LayerScale 0.1, tokens N(0, 0.02^2)."""
-    from convert.convert import expected_param_paths, unflatten_params
+    from rvggt_jax.convert.convert import expected_param_paths, unflatten_params
 
     rng = np.random.default_rng(seed)
     flat = {}

@@ -33,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from convert.convert import expected_param_paths, unflatten_params  # noqa: E402
+from rvggt_jax.convert.convert import expected_param_paths, unflatten_params  # noqa: E402
 from rvggt_jax.aggregator import aggregator_forward  # noqa: E402
 from rvggt_jax.config import DinoConfig, DPTHeadConfig, TrackHeadConfig, VGGTConfig  # noqa: E402
 from rvggt_jax.heads.track import track_head  # noqa: E402

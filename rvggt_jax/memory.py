@@ -58,7 +58,7 @@ class MemoryReport:
 def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:
     """The converted parameter tree of `config` as `jax.ShapeDtypeStruct` leaves (the
     aggregator's in `param_dtype`, as `load_pretrained(..., param_dtype=...)` loads it)."""
-    from convert.convert import expected_param_shapes
+    from rvggt_jax.convert.convert import expected_param_shapes
     from rvggt_jax.checkpoint import cast_params
 
     tree = expected_param_shapes(config, skip_track=not (with_track and config.enable_track))

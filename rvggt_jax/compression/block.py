@@ -272,14 +272,15 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
 
     dup = None
     if plan.n_dup:
-        # The authors' artefact: the protected tokens once more, un-merged, size 1.
+        # The authors' artefact: the protected dst tokens once more, un-merged, size 1.
         ppos = state["protected_pos"]
         dk, dv = _rows_kv(p_block, x, ppos, pos, heads, dtype, shards, L)
-        dup_ok = jnp.ones(ppos.shape, bool)
+        # only protected dst come twice: the authors drop protected src from both lists
+        dup_ok = jnp.take(jnp.asarray(part.is_dst), ppos, mode="clip")
         if plan.kv_mode == "select" and not (cc.kv_protect_saliency and cc.protect == "saliency"):
             keep = jnp.asarray(kv_static_keep(geom.frames, geom.h, geom.w, geom.num_special, plan.tile,
                                               cc.phase_shift, cc.anchor))
-            dup_ok = jnp.take(keep, ppos, mode="clip")
+            dup_ok = dup_ok & jnp.take(keep, ppos, mode="clip")
         dup = (dk, dv, jnp.ones(ppos.shape, jnp.float32), dup_ok)
         if not ring:
             kk = jnp.concatenate([kk, dk], axis=1)

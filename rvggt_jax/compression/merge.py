@@ -242,16 +242,3 @@ def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
 def unmerge(y: jax.Array, match: dict[str, jax.Array]) -> jax.Array:
     """y [B, N_m, F] -> [B, N, F]: every token takes its group's row."""
     return chunks.take_along(y, match["group"], axis=1)
-
-
-def identity_match(n: int, batch: int) -> dict[str, jax.Array]:
-    """The match of r = 0 (every token its own group), for tests."""
-    return {"group": jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (batch, n)),
-            "sizes": jnp.ones((batch, n), jnp.float32),
-            "unm_pos": jnp.zeros((batch, 0), jnp.int32)}
-
-
-def static_protected_flags(positions: np.ndarray, n: int) -> np.ndarray:
-    flags = np.zeros(n, bool)
-    flags[positions] = True
-    return flags

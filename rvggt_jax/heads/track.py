@@ -7,16 +7,14 @@ Parameters are the `track_head` subtree of the converted state dict: `feature_ex
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 import jax
 
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.frames import FrameShards
 from rvggt_jax.heads.dpt import Aggregated, dpt_features
 from rvggt_jax.heads.tracker import track_predictor
+from rvggt_jax.types import Params
 
-Params = Mapping[str, Any]
 
 # Upstream TrackHead builds its DPT extractor with these fixed settings.
 FEATURE_DOWN_RATIO = 2

@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -40,8 +39,8 @@ import numpy as np
 from rvggt_jax import layers
 from rvggt_jax.frames import FrameShards
 from rvggt_jax.config import TrackHeadConfig
+from rvggt_jax.types import Params
 
-Params = Mapping[str, Any]
 
 # ---------------------------------------------------------------------------------------
 # Constants upstream hard-codes (BaseTrackerPredictor / EfficientUpdateFormer defaults that
@@ -83,15 +82,6 @@ def _sincos_table(dim: int, size: int) -> np.ndarray:
     return np.concatenate([np.sin(ang), np.cos(ang)], axis=1).astype(np.float32)
 
 
-def sincos_grid_embed(dim: int, h: int, w: int) -> np.ndarray:
-    """Upstream `get_2d_sincos_pos_embed(dim, (h, w))` as an NHWC map [h, w, dim]:
-    channels [0, dim/2) embed the column (x), [dim/2, dim) the row (y). Test helper; the
-    tracker samples the separable tables directly (see `sample_grid_embed`)."""
-    tx, ty = _sincos_table(dim // 2, w), _sincos_table(dim // 2, h)
-    return np.concatenate([np.broadcast_to(tx[None], (h, w, dim // 2)),
-                           np.broadcast_to(ty[:, None], (h, w, dim // 2))], axis=-1)
-
-
 def _pixel_coord(c: jax.Array, size: int) -> jax.Array:
     """Continuous pixel index addressed by coordinate c under align_corners=True; an axis of
     size 1 maps everything to 0 (torch's unnormalisation multiplies by size - 1)."""
@@ -108,7 +98,8 @@ def _border_taps(c: jax.Array, size: int) -> tuple[jax.Array, jax.Array, jax.Arr
 
 
 def sample_grid_embed(dim: int, hw: tuple[int, int], xy: jax.Array) -> jax.Array:
-    """Bilinear, border-padded sample of `sincos_grid_embed(dim, *hw)` at xy [..., 2]
+    """Bilinear, border-padded sample of upstream's `get_2d_sincos_pos_embed(dim, hw)` map
+    (channels [0, dim/2) embed the column x, [dim/2, dim) the row y) at xy [..., 2]
     (feature-map pixels) -> [..., dim]. The map is separable (x half depends on the column
     only, y half on the row only), so each half is a 1-D interpolation of a small table."""
     h, w = hw
