@@ -137,6 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--all-colmap-points", action="store_true",
                    help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
                         "at most 100000)")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="split the frames over N local devices, one forward pass (default: all of them when "
+                        "there are several)")
 
     p = sub.add_parser("view", help="interactive 3D viewer of a reconstruction (in the browser, localhost)",
                        description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
@@ -180,7 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             reconstruct_folder(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
                                conf_threshold=args.conf_threshold, max_frames=args.max_frames,
                                points_from=args.points, max_points=args.max_points, quiet=args.quiet,
-                               overwrite=args.overwrite, dtype=args.dtype, every=args.every, fps=args.fps,
+                               overwrite=args.overwrite, dtype=args.dtype, devices=args.devices,
+                               every=args.every, fps=args.fps,
                                skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif,
                                all_colmap_points=args.all_colmap_points)
         elif args.command == "view":

@@ -138,18 +138,34 @@ def enable_compilation_cache() -> str | None:
         return None
 
 
-def run_model(params, images, config, weights, compiled=None) -> dict:
+def run_model(params, images, config, weights, compiled=None, mesh=None) -> dict:
     """`pipeline.run_model` with its failures as one-line `CLIError`s naming `weights`."""
     from rvggt_jax.model import InputError
     from rvggt_jax.pipeline import run_model as forward
 
     enable_compilation_cache()
     try:
-        return forward(params, images, config, compiled)
+        return forward(params, images, config, compiled, mesh)
     except InputError as e:
         raise CLIError(f"checkpoint {weights} does not fit the model: {one_line(e)}") from None
     except ValueError as e:  # a head missing
         raise CLIError(f"checkpoint {weights}: {one_line(e)}") from None
+
+
+def devices_mesh(devices: int | None):
+    """The "frames" mesh of `devices` local devices (None: all, when there are several),
+    or None for one device."""
+    import jax
+
+    have = jax.local_devices()
+    n = len(have) if devices is None else devices
+    if not 1 <= n <= len(have):
+        raise CLIError(f"--devices {n}: this machine has {len(have)} {jax.default_backend().upper()} device(s)")
+    if n == 1:
+        return None
+    from rvggt_jax.sharded import frames_mesh
+
+    return frames_mesh(n)
 
 
 # ---------------------------------------------------------------------------------------
@@ -231,10 +247,12 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
                 points_from: str = "depth", max_points: int | None = 2_000_000, quiet: bool = False,
                 overwrite: bool = False, every: int | None = None, fps: float | None = None,
                 skip_bad: bool = False, exif_orientation: bool = True, all_colmap_points: bool = False,
-                dtype: str = "float32") -> dict:
+                dtype: str = "float32", devices: int | None = None) -> dict:
     """Reconstruct the images of a folder (sorted by name) or the frames of a video file
     (`every` N-th frame or `fps` per second, default 1 per second) and write every output
-    to `out_dir`. Returns the export summary. Raises `CLIError` with a one-line message."""
+    to `out_dir`. `devices`: split the frames over this many local devices (default: all
+    of them when there are several). Returns the export summary. Raises `CLIError` with a
+    one-line message."""
     import math
 
     from rvggt_jax.hub import is_repo_id
@@ -300,7 +318,7 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
         return _reconstruct_folder(chosen, weights, local_weights, out_dir, preset=preset, mode=mode, conf_threshold=conf_threshold,
                             max_frames=max_frames, points_from=points_from, max_points=max_points, quiet=quiet,
                             skip_bad=skip_bad, exif_orientation=exif_orientation,
-                            all_colmap_points=all_colmap_points, source=source, dtype=dtype)
+                            all_colmap_points=all_colmap_points, source=source, dtype=dtype, devices=devices)
     finally:
         if not manifest.write() and created:  # also after a failure: the next --overwrite removes exactly these
             try:
@@ -310,7 +328,8 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
 
 
 def _reconstruct_folder(chosen, weights, local_weights, out_dir, *, preset, mode, conf_threshold, max_frames, points_from, max_points,
-                 quiet, skip_bad, exif_orientation, all_colmap_points, source, dtype="float32") -> dict:
+                 quiet, skip_bad, exif_orientation, all_colmap_points, source, dtype="float32",
+                 devices=None) -> dict:
     """`reconstruct_folder` once the inputs are chosen and the output folder is ready."""
     from tqdm.auto import tqdm
 
@@ -373,12 +392,13 @@ def _reconstruct_folder(chosen, weights, local_weights, out_dir, *, preset, mode
         from rvggt_jax.memory import InsufficientMemoryError, check_fits
 
         enable_compilation_cache()
+        mesh = devices_mesh(devices)
         try:
-            report = check_fits(config, s, h, w, param_dtype=dtype)
+            report = check_fits(config, s, h, w, param_dtype=dtype, mesh=mesh)
         except (InsufficientMemoryError, ValueError) as e:
             raise CLIError(str(e)) from None
         stage(2)
-        out = run_model(params, images, config, weights, compiled=report.compiled)
+        out = run_model(params, images, config, weights, compiled=report.compiled, mesh=mesh)
         stage(3)
         recon = reconstruction_from_outputs(out, images, names=[Path(p).name for p in chosen], infos=infos,
                                             points_from=points_from, conf_threshold=conf_threshold,

@@ -116,9 +116,6 @@ class FrameShards:
         """Rows idx [B, M] (global token positions) of the sequence whose local rows are
         x [B, local * L, ...], on every device: [B, M, ...] (`fn` applied per row first).
         Each row comes from the device that holds it (a psum of one non-zero term: exact)."""
-        if not self.sharded:
-            rows = chunks.take_along(x, idx, axis=1)
-            return rows if fn is None else fn(rows)
         return self.take_owned(x, idx, self.local * per_frame, fn)
 
     def take_owned(self, x: jax.Array, idx: jax.Array, rows: int,
@@ -130,13 +127,30 @@ class FrameShards:
             return got if fn is None else fn(got)
         start = self.index() * rows
         n_local = x.shape[1]
-        rel = idx - start
-        mine = (rel >= 0) & (rel < n_local)
-        rows = chunks.take_along(x, jnp.clip(rel, 0, n_local - 1), axis=1)
-        if fn is not None:
-            rows = fn(rows)
-        mask = mine.reshape(mine.shape + (1,) * (rows.ndim - 2))
-        return jax.lax.psum(jnp.where(mask, rows, jnp.zeros_like(rows)), self.axis)
+
+        def mine(ic):
+            rel = ic - start
+            got = chunks.take_along(x, jnp.clip(rel, 0, n_local - 1), axis=1)
+            if fn is not None:
+                got = fn(got)
+            held = ((rel >= 0) & (rel < n_local)).reshape(ic.shape + (1,) * (got.ndim - 2))
+            return jnp.where(held, got, jnp.zeros_like(got))
+
+        # in chunks of rows: the gathered rows (and fn's float32 work) never exist for all
+        # of idx at once, only the result
+        per_row = idx.shape[0] * math.prod(x.shape[2:]) * 4 * 3
+        return self.sum_exclusive(chunks.map_tokens(mine, (idx,), bytes_per_row=per_row, dep=x))
+
+    def sum_exclusive(self, x: jax.Array) -> jax.Array:
+        """psum of arrays where at most one device holds a non-zero value per element: 16-bit
+        floats are summed as their bit patterns (exact: the others add 0), because XLA
+        promotes a bfloat16 all-reduce to float32 (twice the buffer)."""
+        if not self.sharded:
+            return x
+        if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
+            bits = jax.lax.bitcast_convert_type(x, jnp.uint16)
+            return jax.lax.bitcast_convert_type(jax.lax.psum(bits, self.axis), x.dtype)
+        return jax.lax.psum(x, self.axis)
 
     def local_positions(self, positions: np.ndarray, per_frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Split static global token positions [M] (ascending) over the devices:
@@ -169,7 +183,16 @@ class FrameShards:
     def ring_shift(self, tree):
         """Every device's arrays to the next device (d -> d + 1 mod devices)."""
         n = self.devices
-        return jax.tree.map(lambda a: jax.lax.ppermute(a, self.axis, [(i, (i + 1) % n) for i in range(n)]), tree)
+        pairs = [(i, (i + 1) % n) for i in range(n)]
+
+        def shift(a):
+            if a.dtype.itemsize == 2 and jnp.issubdtype(a.dtype, jnp.floating):
+                # as bits: XLA:CPU would move a bfloat16 permute in float32
+                bits = jax.lax.ppermute(jax.lax.bitcast_convert_type(a, jnp.uint16), self.axis, pairs)
+                return jax.lax.bitcast_convert_type(bits, a.dtype)
+            return jax.lax.ppermute(a, self.axis, pairs)
+
+        return jax.tree.map(shift, tree)
 
     def ring_sum_scatter(self, contribution: Callable[[jax.Array], jax.Array]) -> jax.Array:
         """Sum over devices of `contribution(block)` (this device's part of block `block`

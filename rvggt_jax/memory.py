@@ -108,21 +108,18 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
 
 
 def _sharded_plan(params, images, config, queries, mesh):
-    """`sharded_forward` compiled for abstract inputs: parameters replicated, images split
-    over "frames" when their frames divide the axis (else replicated: the forward pads)."""
-    from jax.sharding import NamedSharding, PartitionSpec as P
+    """`sharded_forward` over `mesh` compiled for abstract inputs placed as
+    `sharded.input_shardings` places them; the compiled program takes (params, images,
+    config[, query_points])."""
+    import functools
 
-    from rvggt_jax.frames import FRAMES_AXIS
-    from rvggt_jax.sharded import frame_shards, sharded_forward
+    from rvggt_jax.sharded import input_shardings, sharded_forward
 
-    shards = frame_shards(mesh, images.shape[1])
-    replicated = NamedSharding(mesh, P())
+    replicated, split = input_shardings(mesh, images.shape[1])
     params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), params)
-    spec = P(None, FRAMES_AXIS) if shards.padded == shards.frames else P()
-    images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=NamedSharding(mesh, spec))
+    images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=split)
     extra = () if queries is None else (jax.ShapeDtypeStruct(queries.shape, queries.dtype, sharding=replicated),)
-    fn = jax.jit(sharded_forward, static_argnames=("config", "mesh"))
-    return fn.lower(params, images, config, mesh, *extra).compile()
+    return jax.jit(functools.partial(sharded_forward, mesh=mesh)).lower(params, images, config, *extra).compile()
 
 
 # ---------------------------------------------------------------------------------------
@@ -170,11 +167,12 @@ def device_memory_bytes() -> tuple[int | None, str]:
 
 
 def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, param_dtype: Any = None,
-               batch: int = 1) -> MemoryReport:
-    """`memory_report` of the forward, raising `InsufficientMemoryError` with what to
-    change when it needs more than `device_memory_bytes()`. Returns the report (with the
-    compiled forward) when it fits."""
-    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype)
+               batch: int = 1, mesh: Any = None) -> MemoryReport:
+    """`memory_report` of the forward (over `mesh`'s devices when given: the figure is
+    then per device), raising `InsufficientMemoryError` with what to change when it needs
+    more than `device_memory_bytes()`. Returns the report (with the compiled forward)
+    when it fits."""
+    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype, mesh=mesh)
     have, what = device_memory_bytes()
     if have is not None and rep.total_bytes > have:
         hints = []
@@ -186,8 +184,9 @@ def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, para
         fit = max(1, int(frames * have / rep.total_bytes * 0.9))
         if fit < frames:
             hints.append(f"--max-frames {fit}")
+        where = "" if mesh is None else f" on each of {mesh.devices.size} devices"
         raise InsufficientMemoryError(
             f"{frames} frames of {width}x{height} ({config.compression.name}, {config.dtype}) need "
-            f"{rep.total_bytes / 1e9:.1f} GB, {what} has {have / 1e9:.1f} GB; try "
+            f"{rep.total_bytes / 1e9:.1f} GB{where}, {what} has {have / 1e9:.1f} GB; try "
             + ", ".join(hints))
     return rep

@@ -57,10 +57,14 @@ class Reconstruction:
     repairs: tuple[str, ...] = ()
 
 
-def run_model(params, images, config, compiled=None) -> dict[str, np.ndarray]:
+def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.ndarray]:
     """The forward pass on images [S, 3, H, W] -> numpy outputs of batch element 0
     (`pose_enc`, `depth`, `depth_conf`, and `world_points(_conf)` with the point head).
-    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`)."""
+    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`,
+    of the sharded forward when `mesh` is given); `mesh`: split the frames over its
+    "frames" axis (`rvggt_jax.sharded_forward`)."""
+    import functools
+
     import jax
 
     from rvggt_jax.model import rvggt_forward
@@ -69,10 +73,15 @@ def run_model(params, images, config, compiled=None) -> dict[str, np.ndarray]:
     if missing:
         raise ValueError(f"the model has no {' / '.join(missing)} head; a reconstruction needs the camera and "
                          f"depth heads")
-    if compiled is not None:
-        out = compiled(params, jax.numpy.asarray(images)[None], config)
-    else:
-        out = jax.jit(rvggt_forward)(params, images, config)
+    batch = jax.numpy.asarray(images)[None]
+    forward = rvggt_forward
+    if mesh is not None:
+        from rvggt_jax.sharded import input_shardings, sharded_forward
+
+        replicated, split = input_shardings(mesh, batch.shape[1])
+        params, batch = jax.device_put(params, replicated), jax.device_put(batch, split)
+        forward = functools.partial(sharded_forward, mesh=mesh)
+    out = (compiled if compiled is not None else jax.jit(forward))(params, batch, config)
     return {k: np.asarray(out[k])[0] for k in _OUTPUT_KEYS if k in out}
 
 

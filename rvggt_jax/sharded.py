@@ -45,6 +45,14 @@ def frame_shards(mesh: Mesh, frames: int) -> FrameShards:
     return FrameShards(frames, n, FRAMES_AXIS) if n > 1 else FrameShards.single(frames)
 
 
+def input_shardings(mesh: Mesh, frames: int) -> tuple[NamedSharding, NamedSharding]:
+    """(parameters: replicated, images [B, S, 3, H, W]: split over "frames" when S divides
+    the axis, else replicated, as the forward pads them) for `frames` frames on `mesh`."""
+    shards = frame_shards(mesh, frames)
+    even = shards.padded == shards.frames
+    return NamedSharding(mesh, P()), NamedSharding(mesh, P(None, FRAMES_AXIS) if even else P())
+
+
 def sharded_forward(params: Params, images: jax.Array, config: VGGTConfig, mesh: Mesh,
                     query_points: jax.Array | None = None, keep_padding: bool = False) -> dict[str, Any]:
     """`rvggt_forward` with the frames split over the mesh axis "frames".

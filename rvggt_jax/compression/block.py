@@ -240,21 +240,29 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     sizes_own = jax.lax.dynamic_slice_in_dim(
         jnp.pad(sizes, ((0, 0), (0, rows * shards.devices - plan.n_query)), constant_values=1.0), first_row, rows, 1)
 
-    def merged(part):
+    def merged(part, after=None):
         fn = layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, part)
         if not shards.sharded:
             return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2)[0]
-        vals = chunks.map_tokens(fn, (x, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4)[0]
+        # one of q, k, v at a time: each projected after the previous one is summed
+        xs = x if after is None else jax.lax.optimization_barrier((x, after))[0]
+        vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4)[0]
         sums = shards.ring_sum_scatter(lambda block: merge_lib.block_sums(vals, group - block * rows, rows))
         return (sums / sizes_own[..., None, None]).astype(vals.dtype)
 
-    qm, km, vm = (merged(part) for part in "qkv")  # [B, rows, H, D]: this device's merged rows
-    ring = shards.sharded and plan.kv_mode == "all"  # keys: every device's merged rows, passed around
+    qm = merged("q")  # [B, rows, H, D]: this device's merged rows
+    km = merged("k", qm)
+    vm = merged("v", km)
+    # Over devices, the keys are every device's merged rows, passed around (those the
+    # layer does not keep masked out: each device holds two devices' rows at a time
+    # instead of every kept row)
+    ring = shards.sharded
+    own_rows = first_row + jnp.arange(rows)
 
     if plan.kv_mode == "all":
         kk, vv, g, valid = km, vm, (sizes_own if ring else sizes), None
         if ring:
-            valid = jnp.broadcast_to(first_row + jnp.arange(rows) < plan.n_query, (b, rows))
+            valid = jnp.broadcast_to(own_rows < plan.n_query, (b, rows))
     else:
         fixed = fixed_kv_index(cc, layer, geom.frames, geom.h, geom.w, geom.num_special)
         kv_key = None if plan.match_key is None else f"{plan.match_key}|{plan.tile}"
@@ -265,10 +273,15 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             if kv_key is not None:
                 state["kv"] = {**state["kv"], kv_key: (idx, ok)}
         sel = jnp.concatenate([jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size)), idx], axis=1)
-        # the kept rows, from whichever device holds them, on every device
-        kk, vv = shards.take_owned(km, sel, rows), shards.take_owned(vm, sel, rows)
-        g = jnp.take_along_axis(sizes, sel, axis=1, mode="promise_in_bounds")
         valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+        if ring:  # this device's merged rows, the kept ones marked (the slots are distinct rows)
+            rel = sel - first_row  # (negative ones would wrap around in a scatter)
+            rel = jnp.where(valid & (rel >= 0) & (rel < rows), rel, rows)
+            valid = jnp.zeros((b, rows), bool).at[jnp.arange(b)[:, None], rel].set(True, mode="drop")
+            kk, vv, g = km, vm, sizes_own
+        else:
+            kk, vv = chunks.take_along(km, sel, axis=1), chunks.take_along(vm, sel, axis=1)
+            g = jnp.take_along_axis(sizes, sel, axis=1, mode="promise_in_bounds")
 
     dup = None
     if plan.n_dup:

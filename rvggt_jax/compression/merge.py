@@ -12,6 +12,8 @@ every token its group's row.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -64,7 +66,12 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     order = None
     if sharded and g == 1:
         table, order = shards.local_positions(src_idx[0], per_frame)
-        dst_rows = jnp.broadcast_to(jnp.asarray(dst_idx[0], jnp.int32), (b, nb))
+        dst_table, dst_order = shards.local_positions(dst_idx[0], per_frame)
+        # the global rank (in dst_idx) of every slot of every device's dst, -1 for padding
+        ranks = np.full(dst_table.size, -1, np.int64)
+        ranks[dst_order] = np.arange(nb)
+        dst_rank = shards.per_device(ranks.reshape(dst_table.shape).astype(np.float32))
+        dst_idx = shards.per_device(dst_table)[None]
         src_idx = shards.per_device(table)[None]
     elif sharded:
         src_table, dst_table, order = _group_tables(shards, src_idx, dst_idx, per_frame)
@@ -77,28 +84,46 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
             return score, arg
         return shards.gather_results(score, order, 1), shards.gather_results(arg, order, 1)
 
-    def best(a, d):
+    def best(a, d, rank=None):
         sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
+        if rank is None:
+            rank = jnp.arange(sims.shape[-1], dtype=jnp.float32)
+        else:  # a device's dst block: ranks of the whole dst list, padding slots out
+            sims = jnp.where(rank >= 0, sims, -jnp.inf)
         top = jnp.max(sims, axis=-1)
         # argmax as the first index reaching the max: two plain reductions, 3x faster on
         # XLA:CPU than its argmax (a variadic reduce); equal, ties included (a row of
         # NaN features gets the last index).
         # (indices as float32: exact below 2^24, and a float min is the faster reduction)
-        first = jnp.min(jnp.where(sims >= top[..., None], jnp.arange(sims.shape[-1], dtype=jnp.float32),
-                                  np.float32(sims.shape[-1])), axis=-1)
-        return top, jnp.minimum(first, sims.shape[-1] - 1).astype(jnp.int32)
+        first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
+        return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
 
     # the unit src rows once (a [G*Na, C] copy in the compute dtype: gathering them block
     # by block inside the loop is 2x slower), then blocks of src rows against the dst
     src = _unit(chunks.take(metric, src_idx.reshape(-1), axis=1), dtype)
     if g == 1:
-        if sharded:
-            dst = shards.take_rows(metric, dst_rows, per_frame, fn=lambda r: _unit(r, dtype))
-        else:
-            dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C]
-        rows = chunks.row_chunks(na, b * nb * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
+        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C] (a device's: [B, Nb', C])
+        rows = chunks.row_chunks(na, b * dst.shape[1] * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
         rows = min(rows, chunk) if chunk > 0 else rows
-        score, arg = gathered(*chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows))
+        if not sharded:
+            score, arg = chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows)
+            return score[:, None], arg[:, None]
+
+        # over devices: this device's src against every device's dst block, the blocks
+        # passed around the devices; the best so far kept (ties: the lowest rank, as one
+        # device's first-index rule)
+        def against(block, rank):
+            return chunks.map_tokens(lambda a: best(a, block, rank), (src,), axis=1, rows=rows)
+
+        def step(_, carry):
+            (top, arg), block = carry
+            block = shards.ring_shift(block)
+            t2, a2 = against(*block)
+            better = (t2 > top) | ((t2 == top) & (a2 < arg))
+            return (jnp.where(better, t2, top), jnp.where(better, a2, arg)), block
+
+        (score, arg), _ = jax.lax.fori_loop(1, shards.devices, step, (against(dst, dst_rank), (dst, dst_rank)))
+        score, arg = gathered(score, arg)
         return score[:, None], arg[:, None]
 
     g = src_idx.shape[0]
@@ -230,13 +255,20 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
 def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
     """Float32 sums [B, rows, ...] of values [B, N, ...] over the groups group [B, N]
     (tokens whose group is outside [0, rows) are left out): one block of the group sums
-    (over devices, the block `ring_sum_scatter` is making)."""
-    b = values.shape[0]
-    inside = (group >= 0) & (group < rows)
-    ids = jnp.where(inside, group + (jnp.arange(b, dtype=jnp.int32) * rows)[:, None], b * rows).reshape(-1)
-    flat = values.reshape((-1,) + values.shape[2:]).astype(jnp.float32)
+    (over devices, the block `ring_sum_scatter` is making). Token chunks are cast to
+    float32 and added one at a time: a float32 copy of all the values would be a
+    loop-invariant XLA hoists out of the ring."""
+    b, n = values.shape[:2]
+    offsets = (jnp.arange(b, dtype=jnp.int32) * rows)[:, None]
+
+    def add(acc, start, size, gc, vc):
+        inside = (gc >= 0) & (gc < rows)
+        ids = jnp.where(inside, gc + offsets, b * rows).reshape(-1)
+        return acc.at[ids].add(vc.reshape((-1,) + vc.shape[2:]).astype(jnp.float32), mode="drop")
+
     sums = chunks.zeros_after((b * rows,) + values.shape[2:], jnp.float32, values)
-    return sums.at[ids].add(flat, mode="drop").reshape((b, rows) + values.shape[2:])
+    chunk = chunks.row_chunks(n, b * math.prod(values.shape[2:]) * 4)
+    return chunks.fold_tokens(add, sums, (group, values), n, 1, chunk).reshape((b, rows) + values.shape[2:])
 
 
 def unmerge(y: jax.Array, match: dict[str, jax.Array]) -> jax.Array:
