@@ -246,7 +246,8 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2)[0]
         # one of q, k, v at a time: each projected after the previous one is summed
         xs = x if after is None else jax.lax.optimization_barrier((x, after))[0]
-        vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4)[0]
+        vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
+                                 dep=xs if after is None else after)[0]
         sums = shards.ring_sum_scatter(lambda block: merge_lib.block_sums(vals, group - block * rows, rows))
         return (sums / sizes_own[..., None, None]).astype(vals.dtype)
 
