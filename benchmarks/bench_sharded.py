@@ -102,13 +102,11 @@ def layer_exchange(cfg: VGGTConfig, layer: int, frames: int, h: int, w: int, dev
     rows = -(-(p.n_query + 1) // n)
     out = {"kind": f"merge/{p.kv_mode}"}
     if p.match == "compute":
-        out["dst rows (psum)"] = allreduce * p.n_dst * c * itemsize
+        out["dst blocks (ring)"] = (n - 1) * (-(-p.n_dst // n)) * c * itemsize
         out["src scores (all-gather)"] = (n - 1) / n * p.n_src * 8
     out["Q/K/V sums (ring reduce-scatter)"] = 3 * (n - 1) * rows * c * 4
-    if p.kv_mode == "all":
-        out["K/V ring"] = 2 * (n - 1) * rows * c * itemsize
-    else:
-        out["kept K/V (psum)"] = allreduce * 2 * p.n_kv * c * itemsize
+    # every merged row travels (with its float32 size bias); rows a layer does not keep are masked
+    out["K/V ring"] = (n - 1) * rows * (2 * c * itemsize + 4)
     out["output rows (ring)"] = (n - 1) * rows * c * itemsize
     return out
 
@@ -123,7 +121,7 @@ def exchange(frames: int, devices: int, presets: list[str], dtypes: list[str], o
             rows: dict[str, list] = {}
             for layer in range(cfg.depth):
                 ex = layer_exchange(cfg, layer, frames, h, w, devices, itemsize)
-                kind = ex.pop("kind") + (" (match)" if "dst rows (psum)" in ex else "")
+                kind = ex.pop("kind") + (" (match)" if "dst blocks (ring)" in ex else "")
                 key = (kind, tuple(sorted((k, round(v)) for k, v in ex.items())))
                 rows.setdefault(key, []).append(layer)
             for (kind, parts), layers in rows.items():

@@ -233,3 +233,12 @@ def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert code != 0 and err.startswith("rvggt: error:") and "GB" in err and "--max-frames" in err
     assert not (tmp_path / "out" / "points.ply").exists()
+
+
+def test_reconstruct_devices_must_exist(tmp_path, capsys):
+    from rvggt_jax.cli import main
+
+    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY), "--out", str(tmp_path / "out"),
+                 "--quiet", "--devices", "64"])
+    err = capsys.readouterr().err
+    assert code != 0 and err.startswith("rvggt: error:") and "--devices 64" in err and "device(s)" in err
