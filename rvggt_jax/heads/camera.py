@@ -83,8 +83,10 @@ def camera_head(params: Params, aggregated_last: jax.Array, config: CameraHeadCo
     def iteration(carry, _):
         pose_in, total = carry
         # The first iteration's encoding is its delta alone; later ones add to the running
-        # sum (upstream detaches it: no gradient through earlier iterations).
-        raw = jax.lax.stop_gradient(total) + _refine(params, tokens, pose_in, config.num_heads)
+        # sum. Upstream detaches the previous encoding, both as the sum and as the next
+        # step's input: no gradient through earlier iterations.
+        raw = jax.lax.stop_gradient(total) + _refine(params, tokens, jax.lax.stop_gradient(pose_in),
+                                                     config.num_heads)
         return (raw, raw), activate_pose(raw, config.trans_act, config.quat_act, config.fl_act)
 
     # scanned: one compiled refinement step instead of `iters`
