@@ -165,7 +165,8 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
         tx = make_optimizer(tc, state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        metrics = dict(parts, grad_norm=optax.global_norm(trained), lr=schedule(tc)(state.step))
+        grad_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g.astype(jnp.float32))) for g in jax.tree.leaves(trained)))
+        metrics = dict(parts, grad_norm=grad_norm, lr=schedule(tc)(state.step))
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
     return jax.jit(step, donate_argnums=(0,) if donate else ())
