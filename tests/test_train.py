@@ -201,3 +201,14 @@ def test_folder_reader_gives_the_synthetic_example(tmp_path):
         train.scene_example(sc, FRAMES + 5, SIZE)
     with pytest.raises(rvggt_jax.InputError, match="multiples of 14"):
         train.synthetic_example(2, (30, 42))
+
+
+def test_finetune_cli_errors_are_one_line(tmp_path, capsys):
+    from rvggt_jax.cli import main
+
+    assert main(["finetune", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
+    assert "no such data folder" in capsys.readouterr().err
+    assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o"), "--size", "224by294"]) == 1
+    assert "--size must be HxW" in capsys.readouterr().err
+    assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o")]) == 1  # neither weights nor config
+    assert "--weights" in capsys.readouterr().err
