@@ -87,9 +87,10 @@ class _Part(nn.Module):
     @nn.compact
     def tree(self) -> dict:
         """This module's parameters as the converter's nested dict (registered on init)."""
-        if self.TOP not in {p[0] for p in param_specs(self.config, skip_track=not self.config.enable_track)}:
+        entries = _entries(self.config, self.TOP)
+        if not entries:
             raise ValueError(f"{type(self).__name__}: this config has no {self.TOP!r} (is the head enabled?)")
-        return _register(self, _entries(self.config, self.TOP))
+        return _register(self, entries)
 
 
 def _as_layers(aggregated: Any) -> dict[int, jax.Array]:
