@@ -24,6 +24,8 @@ _LAZY = {
     "cost_report": "rvggt_jax.cost",
     "memory_report": "rvggt_jax.memory",
     "init_params": "rvggt_jax.nn",
+    "sharded_forward": "rvggt_jax.sharded",
+    "frames_mesh": "rvggt_jax.sharded",
 }
 # Submodules reachable as attributes without an explicit import (rvggt_jax.nn.VGGT).
 _SUBMODULES = ("nn", "train")

@@ -17,6 +17,7 @@ import numpy as np
 
 from rvggt_jax import chunks, compression, layers
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.layers import Params
 from rvggt_jax.patch_embed import patch_embed_tokens
 
@@ -70,24 +71,32 @@ class KeptLayer:
         return cls(*children, slot)
 
 
-def special_tokens(token: jax.Array, b: int, s: int) -> jax.Array:
-    """Upstream's first-frame/other-frames token pair [1, 2, X, C] -> [B*S, X, C]:
-    frame 0 takes entry 0, every other frame entry 1."""
-    first = jnp.broadcast_to(token[:, :1], (b, 1) + token.shape[2:])
-    rest = jnp.broadcast_to(token[:, 1:2], (b, s - 1) + token.shape[2:])
-    return jnp.concatenate([first, rest], axis=1).reshape((b * s,) + token.shape[2:])
+def special_tokens(token: jax.Array, b: int, frame_ids: jax.Array) -> jax.Array:
+    """Upstream's first-frame/other-frames token pair [1, 2, X, C] -> [B*S, X, C] for the
+    frames `frame_ids` [S] (global indices): frame 0 takes entry 0, every other frame
+    entry 1."""
+    s = frame_ids.shape[0]
+    pick = jnp.where((frame_ids == 0)[:, None, None], token[0, 0], token[0, 1])  # [S, X, C]
+    return jnp.broadcast_to(pick[None], (b,) + pick.shape).reshape((b * s,) + token.shape[2:])
 
 
 def aggregator_forward(
-    p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int]
+    p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int],
+    shards: FrameShards | None = None,
 ) -> tuple[dict[int, jax.Array], jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] ->
     (outputs {layer: `KeptLayer` (tokens [B, S, P, 2C])} for the layers in `keep_layers`,
      patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w]).
 
     Each output concatenates the frame-block and global-block outputs of that layer; the
-    other layers' outputs are never materialised beyond their use."""
+    other layers' outputs are never materialised beyond their use.
+
+    With `shards` (frames split over devices, inside `jax.shard_map`): S is this device's
+    frames, every output holds them; the global blocks attend across all devices."""
     b, s, _, hh, ww = images.shape
+    shards = FrameShards.single(s) if shards is None else shards
+    if s != shards.local:
+        raise ValueError(f"{s} frames on this device but the shards say {shards.local}")
     ps = config.patch_size
     h, w = hh // ps, ww // ps
     c = config.embed_dim
@@ -95,8 +104,9 @@ def aggregator_forward(
 
     dino, num_prefix, saliency = patch_embed_tokens(p["patch_embed"], images, config)
     patch_tokens = dino[:, num_prefix:]
-    special = jnp.concatenate([special_tokens(p["camera_token"], b, s), special_tokens(p["register_token"], b, s)],
-                              axis=1).astype(dino.dtype)
+    frame_ids = shards.frame_ids()
+    special = jnp.concatenate([special_tokens(p["camera_token"], b, frame_ids),
+                               special_tokens(p["register_token"], b, frame_ids)], axis=1).astype(dino.dtype)
     if num_prefix == special.shape[1]:
         # DINO's [CLS] + registers and our camera + registers are equally many: the special
         # tokens replace them in DINO's own buffer (no second [B*S, P, C] float32 copy)
@@ -111,7 +121,7 @@ def aggregator_forward(
         jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None], config.head_dim, config.rope_freq)
     global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
 
-    outputs = _layers(p, tokens, frame_pos, global_pos, config, b, s, sorted(keep), saliency, (h, w))
+    outputs = _layers(p, tokens, frame_pos, global_pos, config, b, shards, sorted(keep), saliency, (h, w))
     return outputs, patch_tokens, saliency
 
 
@@ -159,7 +169,7 @@ def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
     return slot, spare
 
 
-def _layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid_hw):
+def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency, grid_hw):
     """The 2 x depth blocks as one `lax.scan` per run of layers sharing a static global
     plan (`layer_groups`: one run for dense, ~7 for `regime`). A scan compiles one body per
     run instead of one per layer (~10x less compile time) and, above all, confines every
@@ -172,9 +182,15 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid
     (`kept_slots`), so the body is the same unconditional in-place write for every
     layer."""
     n, num_tokens, c = tokens.shape
+    s, frames = shards.local, shards.frames  # frames here, frames in the sequence
     dtype = config.compute_dtype
     slot, spare = kept_slots(config.depth, keep)
-    state = None if config.compression.is_dense else compression.init_state(config, saliency, s, grid_hw)
+    state = None
+    if not config.compression.is_dense:
+        # (the state is sequence-wide: every device holds all of it, built from every
+        # frame's saliency, a few floats per patch)
+        state = compression.init_state(config, shards.gather(saliency, 1), frames, grid_hw)
+        state["shards"] = shards
 
     x = tokens.reshape(b, s * num_tokens, c)
     # Made from the tokens: a constant buffer would be allocated at the program start,
@@ -183,12 +199,12 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid
     shape = (len(keep) + spare, b, s, num_tokens, c)
     kept_frame = chunks.zeros_after(shape, dtype, tokens)
     kept_global = chunks.zeros_after(shape, dtype, kept_frame)
-    for group in layer_groups(config, s, grid_hw):
+    for group in layer_groups(config, frames, grid_hw):
         # a group that starts by computing its band's match carries it through its steps
-        band = _storing(_plan(config, group[0], s, grid_hw)) if state is not None else False
+        band = _storing(_plan(config, group[0], frames, grid_hw)) if state is not None else False
         last = group[-1]
 
-        plan0 = compression.layer_plan(config.compression, group[0], s, *grid_hw, config.patch_start_idx)
+        plan0 = compression.layer_plan(config.compression, group[0], frames, *grid_hw, config.patch_start_idx)
         key = plan0.match_key
 
         def layer(carry, xs_i, group=group, band=band, last=last, key=key):
@@ -204,7 +220,7 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, s, keep, saliency, grid
                                                              k, 0)
             x = x.reshape(b, s * num_tokens, c)
             if state is None:
-                x = layers.block(p_global, x, config.num_heads, global_pos, config.rope_freq, dtype=dtype)
+                x = compression.dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
             elif band and len(group) > 1:
                 # the plan of the reusing layers, told to compute the match at the first step
                 st = {**state, "match": {**state["match"], key: cached}}

@@ -29,13 +29,16 @@ statistics and the value accumulation in float32; the result in q's dtype.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.chunks import dynamic_index, zeros_after
+
+if TYPE_CHECKING:
+    from rvggt_jax.frames import FrameShards
 
 IMPLEMENTATIONS = ("blocked", "xla", "cudnn")
 
@@ -74,22 +77,26 @@ def query_blocks(nq: int, nk: int, itemsize: int = 4, block_bytes: int | None = 
     return math.ceil(nq / rows), rows
 
 
-def _softmax_attend(q: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | None) -> jax.Array:
+def _softmax_attend(q: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | None
+                    ) -> tuple[jax.Array, jax.Array]:
     """q [..., n, D] (pre-scaled), kt [..., D, Nk], v [..., Nk, Dv], bias [..., 1, Nk] or
-    None -> [..., n, Dv] in float32. Normalises after the value product: n*Dv divisions
-    instead of n*Nk."""
+    None -> ([..., n, Dv], the log-sum-exp of the logits [..., n]) in float32.
+    Normalises after the value product: n*Dv divisions instead of n*Nk."""
     logits = jnp.matmul(q, kt, preferred_element_type=jnp.float32)
     if bias is not None:
         logits = logits + bias
-    e = jnp.exp(logits - jax.lax.stop_gradient(logits.max(axis=-1, keepdims=True)))
+    m = jax.lax.stop_gradient(logits.max(axis=-1, keepdims=True))
+    e = jnp.exp(logits - m)
     out = jnp.matmul(e.astype(v.dtype), v, preferred_element_type=jnp.float32)
-    return out / e.sum(axis=-1, keepdims=True)
+    total = e.sum(axis=-1, keepdims=True)
+    return out / total, (m + jnp.log(total))[..., 0]
 
 
 def _blocked(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
-             block_bytes: int) -> jax.Array:
+             block_bytes: int, out_dtype: Any = None) -> tuple[jax.Array, jax.Array]:
     """The CPU kernel. q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv], key_bias
-    [B, Nk] float32 or None -> [B, Nq, H, Dv] (float32 when in one block, else q's dtype)."""
+    [B, Nk] float32 or None -> ([B, Nq, H, Dv] (float32 when in one block, else
+    `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H] float32)."""
     b, nq, h, d = q.shape
     nk, dv = k.shape[1], v.shape[-1]
     qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)  # [B, H, Nq, D]
@@ -97,23 +104,29 @@ def _blocked(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
     vt = v.transpose(0, 2, 1, 3)  # [B, H, Nk, Dv]
     bias = None if key_bias is None else key_bias[:, None, None, :]  # [B, 1, 1, Nk]
     if b * h * nq * nk * 4 <= block_bytes:
-        return _softmax_attend(qt, kt, vt, bias).transpose(0, 2, 1, 3)
+        out, lse = _softmax_attend(qt, kt, vt, bias)
+        return out.transpose(0, 2, 1, 3), lse.transpose(0, 2, 1)
 
     n, rows = query_blocks(nq, nk, 4, block_bytes)
     qb = jnp.pad(qt, ((0, 0), (0, 0), (0, n * rows - nq), (0, 0))).reshape(b * h * n, rows, d)
     kt, vt = kt.reshape(b * h, d, nk), vt.reshape(b * h, nk, dv)
 
-    def body(i, out):
+    def body(i, acc):
+        out, lse = acc
         pair = i // n  # (batch, head) pair of this block
         kb, vb = dynamic_index(kt, pair), dynamic_index(vt, pair)
         bb = None if bias is None else dynamic_index(bias[:, 0], pair // h)
-        res = _softmax_attend(dynamic_index(qb, i), kb, vb, bb)
-        return jax.lax.dynamic_update_index_in_dim(out, res.astype(out.dtype), i, 0)
+        res, res_lse = _softmax_attend(dynamic_index(qb, i), kb, vb, bb)
+        return (jax.lax.dynamic_update_index_in_dim(out, res.astype(out.dtype), i, 0),
+                jax.lax.dynamic_update_index_in_dim(lse, res_lse, i, 0))
 
     # the output buffer is made from q, not a constant: XLA would hoist a constant one to
     # the program start and share it between calls (see chunks.zeros_after)
-    out = jax.lax.fori_loop(0, b * h * n, body, zeros_after((b * h * n, rows, dv), q.dtype, q))
-    return out.reshape(b, h, n * rows, dv)[:, :, :nq].transpose(0, 2, 1, 3)
+    out_dtype = q.dtype if out_dtype is None else out_dtype
+    init = zeros_after((b * h * n, rows, dv), out_dtype, q)
+    out, lse = jax.lax.fori_loop(0, b * h * n, body, (init, zeros_after((b * h * n, rows), jnp.float32, init)))
+    return (out.reshape(b, h, n * rows, dv)[:, :, :nq].transpose(0, 2, 1, 3),
+            lse.reshape(b, h, n * rows)[:, :, :nq].transpose(0, 2, 1))
 
 
 def fold_key_bias(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
@@ -166,7 +179,7 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
 
     if implementation == "blocked":
         block_bytes = LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
-        return _blocked(q, k, v, bias32, scale, block_bytes).astype(q.dtype)
+        return _blocked(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype)
 
     dv = v.shape[-1]
     multiple = CUDNN_HEAD_MULTIPLE if implementation == "cudnn" else 1
@@ -184,3 +197,50 @@ def log_sizes(sizes: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     if valid is not None:
         lg = jnp.where(valid, lg, np.float32(NEG_BIAS))
     return lg
+
+
+def ring_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, shards: "FrameShards",
+                   extra: tuple = (), *, scale: float | None = None,
+                   block_bytes: int | None = None) -> jax.Array:
+    """`attention` of this device's queries to keys split over devices, without ever
+    holding more than two devices' keys: q [B, Nq, H, D]; k, v [B, Nk, H, D] and
+    key_bias [B, Nk] (or None) this device's share of the keys; `extra`: (k, v, bias)
+    triples every device attends to as they are (replicated keys). Returns
+    [B, Nq, H, Dv] in q's dtype.
+
+    The shares travel around the devices (`FrameShards.ring_shift`, a collective permute
+    per step); each step's partial attention, with its log-sum-exp, is folded into a
+    running float32 result (the online softmax of flash attention, across devices). On
+    one device it is `attention` over the concatenated keys."""
+    if not shards.sharded:
+        for ek, ev, eb in extra:
+            nk = k.shape[1]
+            k, v = jnp.concatenate([k, ek], axis=1), jnp.concatenate([v, ev], axis=1)
+            if key_bias is not None or eb is not None:
+                zeros = jnp.zeros(k.shape[:1] + (nk,), jnp.float32)
+                key_bias = jnp.concatenate([zeros if key_bias is None else key_bias,
+                                            jnp.zeros(ek.shape[:2], jnp.float32) if eb is None else eb], axis=1)
+        return attention(q, k, v, key_bias, scale=scale, implementation="blocked", block_bytes=block_bytes)
+    d = q.shape[-1]
+    scale = 1.0 / math.sqrt(d) if scale is None else float(scale)
+    block_bytes = LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
+
+    def part(kk, vv, bb):
+        return _blocked(q, kk, vv, None if bb is None else bb.astype(jnp.float32), scale, block_bytes, jnp.float32)
+
+    def fold(acc, new):
+        (o, lse), (o2, lse2) = acc, new
+        top = jnp.logaddexp(lse, lse2)
+        return (o * jnp.exp(lse - top)[..., None] + o2.astype(jnp.float32) * jnp.exp(lse2 - top)[..., None], top)
+
+    def step(_, carry):
+        acc, shard = carry
+        shard = shards.ring_shift(shard)
+        return fold(acc, part(*shard)), shard
+
+    acc = part(k, v, key_bias)
+    acc = tuple(a.astype(jnp.float32) for a in acc)
+    acc, _ = jax.lax.fori_loop(1, shards.devices, step, (acc, (k, v, key_bias)))
+    for ek, ev, eb in extra:
+        acc = fold(acc, part(ek, ev, eb))
+    return acc[0].astype(q.dtype)

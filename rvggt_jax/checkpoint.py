@@ -8,8 +8,9 @@
 - `save_orbax(params, config, dst_dir)` writes `dst_dir/params/` (Orbax) and
   `dst_dir/config.json`.
 
-The converter itself lives in the top-level `convert` package (imported lazily here, as
-is Orbax, so importing this module stays cheap).
+The converter itself is `rvggt_jax.convert` (imported lazily here, as is Orbax, so
+importing this module stays cheap); its error classes live in `rvggt_jax.convert.errors`,
+which imports nothing of this package, so there is no import cycle.
 """
 
 from __future__ import annotations
@@ -20,63 +21,18 @@ import logging
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping
 
 from rvggt_jax.config import VGGTConfig
+# Defined with the converter (which raises them too); imported here for the loaders and
+# re-exported, so `rvggt_jax.checkpoint.CheckpointError` keeps working.
+from rvggt_jax.convert.errors import CheckpointError, CheckpointFileError, unreadable_message  # noqa: F401
 
 ORBAX_SUBDIR = "params"
 CONFIG_NAME = "config.json"
 SAFETENSORS_NAME = "model.safetensors"
-_LIST_LIMIT = 50  # per category in error messages
 # Orbax reads at most this many GB at a time: peak ~1.3x the checkpoint instead of ~2x.
 _RESTORE_CONCURRENT_GB = 1
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that does not match the layout expected for its config.
-
-    Carries every problem at once: `missing` [(key, expected shape)], `unexpected` [key],
-    `mismatched` [(key, shape, expected shape)], `bad_dtype` [(key, dtype)]."""
-
-    def __init__(
-        self,
-        message: str | None = None,
-        *,
-        missing: Sequence[tuple[str, tuple]] = (),
-        unexpected: Sequence[str] = (),
-        mismatched: Sequence[tuple[str, tuple, tuple]] = (),
-        bad_dtype: Sequence[tuple[str, str]] = (),
-    ):
-        self.missing = list(missing)
-        self.unexpected = list(unexpected)
-        self.mismatched = list(mismatched)
-        self.bad_dtype = list(bad_dtype)
-        super().__init__(message or self._describe())
-
-    def _describe(self) -> str:
-        counts = (
-            f"{len(self.missing)} missing, {len(self.unexpected)} unexpected, "
-            f"{len(self.mismatched)} with the wrong shape, {len(self.bad_dtype)} not floating point"
-        )
-        lines = [f"checkpoint does not match the VGGT layout of its config: {counts}"]
-
-        def section(title: str, items: list, fmt) -> None:
-            if not items:
-                return
-            lines.append(f"{title}:")
-            lines.extend(f"  {fmt(it)}" for it in items[:_LIST_LIMIT])
-            if len(items) > _LIST_LIMIT:
-                lines.append(f"  ... and {len(items) - _LIST_LIMIT} more")
-
-        section("missing", self.missing, lambda t: f"{t[0]} (expected shape {tuple(t[1])})")
-        section("unexpected", self.unexpected, str)
-        section("wrong shape", self.mismatched, lambda t: f"{t[0]}: {tuple(t[1])}, expected {tuple(t[2])}")
-        section("not floating point", self.bad_dtype, lambda t: f"{t[0]}: {t[1]}")
-        return "\n".join(lines)
-
-
-class CheckpointFileError(ValueError):
-    """A checkpoint file that cannot be read at all (truncated, corrupt, not safetensors)."""
 
 
 class ConfigInferredWarning(UserWarning):
@@ -95,23 +51,16 @@ def safetensors_shapes(path: str | Path) -> dict[str, tuple[int, ...]]:
         raise CheckpointFileError(unreadable_message(path, e)) from None
 
 
-def unreadable_message(path: str | Path, e: Exception) -> str:
-    """One line: `path` is not a readable safetensors file, and why."""
-    size = Path(path).stat().st_size if Path(path).is_file() else 0
-    return (f"{path} is not a readable .safetensors file: truncated or corrupt ({size} bytes; "
-            f"{type(e).__name__}: {' '.join(str(e).split())}); download it again")
-
-
 def config_for_safetensors(st: str | Path, config_json: str | Path | None = None) -> VGGTConfig:
     """The config of an upstream `.safetensors`: from `config_json` (default: the
     `config.json` beside the file) when present, else inferred from the tensor shapes
-    (`convert.infer.infer_config`). An inferred layout other than VGGT-1B's emits one
+    (`rvggt_jax.convert.infer.infer_config`). An inferred layout other than VGGT-1B's emits one
     `ConfigInferredWarning` naming the values the shapes do not fix."""
     st = Path(st)
     cj = Path(config_json) if config_json is not None else st.parent / CONFIG_NAME
     if cj.is_file():
         return VGGTConfig.from_json(cj)
-    from convert.infer import infer_config
+    from rvggt_jax.convert.infer import infer_config
 
     try:
         config, assumed = infer_config(safetensors_shapes(st))
@@ -153,7 +102,7 @@ def save_orbax(params: Mapping[str, Any], config: VGGTConfig, dst_dir: str | Pat
     tree without `track_head` is saved with `enable_track=False` in config.json."""
     import orbax.checkpoint as ocp
 
-    from convert.convert import expected_param_paths, flatten_params
+    from rvggt_jax.convert.convert import expected_param_paths, flatten_params
 
     config = _config_for(params, config)
     have = {p: tuple(v.shape) for p, v in flatten_params(params).items()}
@@ -169,7 +118,7 @@ def save_orbax(params: Mapping[str, Any], config: VGGTConfig, dst_dir: str | Pat
     # Synchronous (no async host copy of the whole tree) and without OCDBT, which buffers
     # ~0.7x the checkpoint in memory before committing (VGGT-1B: +0.2 GB instead of
     # +3.3 GB over the params, and half the time). numpy leaves still cost Orbax a copy
-    # each; host-CPU jax.Array leaves do not (see convert.cli).
+    # each; host-CPU jax.Array leaves do not (see rvggt_jax.convert.cli).
     ckptr = ocp.Checkpointer(ocp.PyTreeCheckpointHandler(use_ocdbt=False))
     try:
         with _quiet_absl():
@@ -209,7 +158,7 @@ def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_
     import numpy as np
     import orbax.checkpoint as ocp
 
-    from convert.convert import expected_param_paths, flatten_params, unflatten_params
+    from rvggt_jax.convert.convert import expected_param_paths, flatten_params, unflatten_params
 
     want = expected_param_paths(config, skip_track=skip_track)
     if device_put:  # straight to the default device, at most ~1 GB in flight on the host
@@ -314,7 +263,7 @@ def load_pretrained(
             f"nor an upstream {SAFETENSORS_NAME}"
         )
 
-    from convert.convert import load_safetensors
+    from rvggt_jax.convert.convert import load_safetensors
 
     leaf_fn = None
     if device_put:

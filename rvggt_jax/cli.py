@@ -1,4 +1,5 @@
-"""`rvggt`: command-line front end (argument parsing; the work is in `rvggt_jax.pipeline`).
+"""`rvggt`: command-line front end (argument parsing, messages, error mapping; the work is
+in `rvggt_jax.commands`, `rvggt_jax.pipeline` and `rvggt_jax.io`).
 
     rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (see `convert`)
     rvggt reconstruct INPUT --weights CKPT --out OUT_DIR [options]
@@ -15,7 +16,7 @@
 `reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
 (COLMAP text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/,
 thumbnails/, trajectory.png (and frames/ for a video); see
-`rvggt_jax.io.export.export_reconstruction`.
+`rvggt_jax.io.export`.
 
 Failures exit non-zero with `rvggt: error: ...` on stderr, details indented under it
 (set RVGGT_DEBUG=1 for the traceback). Compiled programs are cached across runs in
@@ -27,10 +28,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Any, Sequence
+from typing import Sequence
 
 from rvggt_jax.errors import CLIError, format_error, one_line
-from rvggt_jax.pipeline import (  # noqa: F401 - re-exported: the API of `rvggt_jax.cli` before the split
+from rvggt_jax.commands import (  # noqa: F401 - re-exported: the API of `rvggt_jax.cli` before the split
     DEFAULT_CONF_THRESHOLD,
     DEMO_IMAGES,
     DEMO_WEIGHTS,
@@ -40,7 +41,7 @@ from rvggt_jax.pipeline import (  # noqa: F401 - re-exported: the API of `rvggt_
     demo,
     enable_compilation_cache,
     known_presets,
-    reconstruct,
+    reconstruct_folder,
     select_frames,
     warn,
 )
@@ -60,9 +61,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _convert(argv: Sequence[str]) -> int:
-    """`rvggt convert ...` = the converter's own command line (`python -m convert`)."""
+    """`rvggt convert ...` = the converter's own command line (`python -m rvggt_jax.convert`)."""
     try:
-        from convert.cli import main as entry
+        from rvggt_jax.convert.cli import main as entry
     except ImportError as e:
         raise CLIError(f"the converter is not installed ({one_line(e)})") from None
     return int(entry(list(argv), prog=f"{PROG} convert") or 0)
@@ -138,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--all-colmap-points", action="store_true",
                    help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
                         "at most 100000)")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="split the frames over N local devices, one forward pass (default: all of them when "
+                        "there are several)")
 
     p = sub.add_parser("view", help="interactive 3D viewer of a reconstruction (in the browser, localhost)",
                        description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
@@ -180,11 +184,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             build_parser().print_help()
             return 2
         if args.command == "reconstruct":
-            reconstruct(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
-                        conf_threshold=args.conf_threshold, max_frames=args.max_frames, points_from=args.points,
-                        max_points=args.max_points, quiet=args.quiet, overwrite=args.overwrite, dtype=args.dtype,
-                        every=args.every, fps=args.fps, skip_bad=args.skip_bad,
-                        exif_orientation=not args.ignore_exif, all_colmap_points=args.all_colmap_points)
+            reconstruct_folder(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
+                               conf_threshold=args.conf_threshold, max_frames=args.max_frames,
+                               points_from=args.points, max_points=args.max_points, quiet=args.quiet,
+                               overwrite=args.overwrite, dtype=args.dtype, devices=args.devices,
+                               every=args.every, fps=args.fps,
+                               skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif,
+                               all_colmap_points=args.all_colmap_points)
         elif args.command == "view":
             from rvggt_jax.viewer import serve
 

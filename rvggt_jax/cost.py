@@ -68,12 +68,12 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
     if height % ps or width % ps:
         raise ValueError(f"height and width must be multiples of {ps}")
     h, w = height // ps, width // ps
-    ns = config.patch_start_idx
+    num_special = config.patch_start_idx
     c, heads = config.embed_dim, config.num_heads
     d = c // heads
     hidden = int(c * config.mlp_ratio)
-    cc = config.compression
-    L = ns + h * w
+    comp = config.compression
+    L = num_special + h * w
     N = frames * L
 
     dense_global_attn = _attn_flops(N, N, heads, d, d)
@@ -82,7 +82,7 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
 
     rows = []
     for layer in range(config.depth):
-        plan = layer_plan(cc, layer, frames, h, w, ns)
+        plan = layer_plan(comp, layer, frames, h, w, num_special)
         if plan.kind == "dense":
             q, kv, dqk = N, N, d
             attn = dense_global_attn
@@ -95,13 +95,13 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
             fixed, dyn, dup, exp_fill = L, 0, 0, float(L)
         else:
             q, kv = plan.n_query, plan.n_kv
-            dqk = padded_head_dim(d, plan.size_column, cc.head_pad_multiple)
-            dv = d if cc.head_pad_multiple == 1 or not plan.size_column else dqk
+            dqk = padded_head_dim(d, plan.size_column, comp.head_pad_multiple)
+            dv = d if comp.head_pad_multiple == 1 or not plan.size_column else dqk
             attn = _attn_flops(q, kv, heads, dqk, dv)
             # K/V-only layers project K and V for the kept tokens alone
             lin = _block_linear_flops(N, q, N, c, hidden, rows_kv=kv if plan.kind == "kv" else N)
             fixed, dyn, dup = plan.n_fixed, plan.n_dyn, plan.n_dup
-            exp_fill = plan.n_fixed + plan.expected_dyn + plan.n_dup
+            exp_fill = plan.n_fixed + plan.expected_dyn + plan.expected_dup
         match = 2 * plan.match_pairs * c if plan.match == "compute" else 0
         total = attn + lin + match
         rows.append(dict(
@@ -119,7 +119,7 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
     pe = batch * patch_embed_flops(config, frames, h, w)
     attn_sum = sum(r["attention_flops"] for r in rows)
     return dict(
-        preset=cc.name, frames=frames, grid=(h, w), tokens=N, batch=batch, layers=rows,
+        preset=comp.name, frames=frames, grid=(h, w), tokens=N, batch=batch, layers=rows,
         global_attention_flops=attn_sum, dense_global_attention_flops=batch * dense_global_attn * config.depth,
         global_attention_ratio=attn_sum / (batch * dense_global_attn * config.depth),
         match_flops=sum(r["match_flops"] for r in rows),

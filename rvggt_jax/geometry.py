@@ -7,8 +7,9 @@ Conventions are upstream VGGT's:
 - quaternions are scalar-last `(x, y, z, w)`;
 - the pose encoding "absT_quaR_FoV" is `[t (3), quaternion (4), fov_h, fov_w]`, `[..., 9]`.
 
-Everything is jit-able JAX over arbitrary leading (batch) dimensions; the one
-numpy-in/numpy-out helper is `unproject_depth_map_to_point_map`.
+Everything is jit-able JAX over arbitrary leading (batch) dimensions; the quaternion
+functions also take numpy arrays (and return numpy, float64 kept), and
+`unproject_depth_map_to_point_map` is numpy-in/numpy-out.
 """
 
 from __future__ import annotations
@@ -22,64 +23,68 @@ import numpy as np
 # ---------------------------------------------------------------------------------------
 
 
+def _array_module(x):
+    """numpy for numpy input (float64 stays float64: the COLMAP writer needs it), else
+    jax.numpy (jit-able)."""
+    return np if isinstance(x, np.ndarray) else jnp
+
+
 def quat_to_mat(quat: jax.Array) -> jax.Array:
     """Rotation matrices of (not necessarily unit) quaternions.
 
     quat [..., 4] scalar-last (x, y, z, w) -> [..., 3, 3]. The quaternion is normalised
-    implicitly through `2 / |q|^2`, so any non-zero scaling of `quat` gives the same matrix."""
-    x, y, z, w = jnp.moveaxis(quat, -1, 0)
-    two_s = 2.0 / jnp.sum(quat * quat, axis=-1)
+    implicitly through `2 / |q|^2`, so any non-zero scaling of `quat` gives the same matrix.
+    numpy in, numpy out (in its dtype); anything else goes through JAX."""
+    xp = _array_module(quat)
+    x, y, z, w = xp.moveaxis(quat, -1, 0)
+    two_s = 2.0 / xp.sum(quat * quat, axis=-1)
     rows = (
         1 - two_s * (y * y + z * z), two_s * (x * y - z * w), two_s * (x * z + y * w),
         two_s * (x * y + z * w), 1 - two_s * (x * x + z * z), two_s * (y * z - x * w),
         two_s * (x * z - y * w), two_s * (y * z + x * w), 1 - two_s * (x * x + y * y),
     )
-    return jnp.stack(rows, axis=-1).reshape(quat.shape[:-1] + (3, 3))
-
-
-def _sqrt_positive_part(x: jax.Array) -> jax.Array:
-    # The inner `where` keeps the gradient finite (zero) where x <= 0.
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+    return xp.stack(rows, axis=-1).reshape(quat.shape[:-1] + (3, 3))
 
 
 def standardize_quaternion(quat: jax.Array) -> jax.Array:
     """Flip each quaternion [..., 4] (x, y, z, w) to the hemisphere w >= 0 (w == 0 kept)."""
-    return jnp.where(quat[..., 3:4] < 0, -quat, quat)
+    return _array_module(quat).where(quat[..., 3:4] < 0, -quat, quat)
 
 
 def mat_to_quat(matrix: jax.Array) -> jax.Array:
     """Quaternions of rotation matrices: [..., 3, 3] -> [..., 4] scalar-last, w >= 0.
 
-    Of the four algebraically equivalent formulas (each divides by one of 2|w|, 2|x|,
-    2|y|, 2|z|) the one with the largest divisor is used, which keeps it accurate for
-    every rotation, as upstream (PyTorch3D's algorithm)."""
+    Shepperd's method: the formula that divides by 4|w| when the trace is positive, else
+    the one dividing by 4|x|, 4|y| or 4|z| for the largest diagonal entry, so that the
+    divisor is never small. For a rotation this equals upstream's (PyTorch3D's, which picks
+    the largest of |w|, |x|, |y|, |z|) up to rounding; it is written this way because the
+    COLMAP writer (`rvggt_jax.io.colmap`) uses it in float64 and its files must not change
+    by a digit. numpy in, numpy out (in its dtype); anything else goes through JAX. Not
+    normalised: a non-orthonormal matrix gives a non-unit quaternion."""
     if matrix.shape[-2:] != (3, 3):
         raise ValueError(f"expected rotation matrices [..., 3, 3], got {matrix.shape}")
-    m = jnp.moveaxis(matrix.reshape(matrix.shape[:-2] + (9,)), -1, 0)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
+    xp = _array_module(matrix)
+    m00, m01, m02 = matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 0, 2]
+    m10, m11, m12 = matrix[..., 1, 0], matrix[..., 1, 1], matrix[..., 1, 2]
+    m20, m21, m22 = matrix[..., 2, 0], matrix[..., 2, 1], matrix[..., 2, 2]
+    trace = m00 + m11 + m22
 
-    # 2|w|, 2|x|, 2|y|, 2|z| for a unit quaternion, up to the factor 2.
-    q_abs = _sqrt_positive_part(jnp.stack([
-        1.0 + m00 + m11 + m22,
-        1.0 + m00 - m11 - m22,
-        1.0 - m00 + m11 - m22,
-        1.0 - m00 - m11 + m22,
-    ], axis=-1))
+    def four_times(arg):
+        # 4 |component| = 2 sqrt(arg); the floor only keeps branches that are not selected
+        # finite (the selected one has arg >= 1 for a rotation).
+        return 2.0 * xp.sqrt(xp.maximum(arg, 1e-30))
 
-    # Row r is the (w, x, y, z) quaternion times 4 * (its r-th component).
-    by_wxyz = jnp.stack([
-        jnp.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], axis=-1),
-        jnp.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], axis=-1),
-        jnp.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], axis=-1),
-        jnp.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], axis=-1),
-    ], axis=-2)
-    # The floor only avoids division by ~0 in rows that are never selected.
-    candidates = by_wxyz / (2.0 * jnp.maximum(q_abs, 0.1)[..., None])
-
-    best = jnp.argmax(q_abs, axis=-1)
-    wxyz = jnp.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
-    return standardize_quaternion(jnp.concatenate([wxyz[..., 1:], wxyz[..., :1]], axis=-1))
+    s = four_times(trace + 1.0)
+    by_w = (0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s)
+    s = four_times(1.0 + m00 - m11 - m22)
+    by_x = ((m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s)
+    s = four_times(1.0 + m11 - m00 - m22)
+    by_y = ((m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s)
+    s = four_times(1.0 + m22 - m00 - m11)
+    by_z = ((m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s)
+    use_w, use_x, use_y = trace > 0, (m00 > m11) & (m00 > m22), m11 > m22
+    wxyz = [xp.where(use_w, a, xp.where(use_x, b, xp.where(use_y, c, d))) for a, b, c, d in zip(by_w, by_x, by_y, by_z)]
+    return standardize_quaternion(xp.stack(wxyz[1:] + wxyz[:1], axis=-1))
 
 
 # ---------------------------------------------------------------------------------------
@@ -193,3 +198,20 @@ def unproject_depth_map_to_point_map(depth_map, extrinsics, intrinsics) -> np.nd
 
 
 _depth_to_world_points_jit = jax.jit(depth_to_world_points)
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to R [3, 3] (SVD; numpy float64), so that slightly
+    non-orthogonal predictions still give a valid quaternion."""
+    u, _, vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    return r
+
+
+def camera_centers(extrinsics: np.ndarray) -> np.ndarray:
+    """World positions of the cameras: extrinsics [S, 3, 4] world-to-camera -> [S, 3] (-R^T t)."""
+    e = np.asarray(extrinsics, dtype=np.float64)
+    return -np.einsum("sji,sj->si", e[:, :3, :3], e[:, :3, 3])

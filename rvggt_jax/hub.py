@@ -134,7 +134,7 @@ def _convert_to(st: Path, cfg: Path | None, dst: Path, progress: bool) -> None:
     into a temporary sibling first, renamed when complete."""
     import jax
 
-    from convert.convert import load_safetensors
+    from rvggt_jax.convert.convert import load_safetensors
     from rvggt_jax.checkpoint import config_for_safetensors, save_orbax
 
     with warnings.catch_warnings():

@@ -1,8 +1,8 @@
 """Upstream VGGT's random initialisation, leaf by leaf, for the converted parameter tree.
 
 `param_specs(config)` lists every leaf of the converter's tree (the same paths and
-shapes as `convert.convert.expected_param_paths`, derived from the same upstream
-state-dict table `convert/shapes.py` and rule table `convert/rules.py`) with the
+shapes as `rvggt_jax.convert.convert.expected_param_paths`, derived from the same upstream
+state-dict table `rvggt_jax/convert/shapes.py` and rule table `rvggt_jax/convert/rules.py`) with the
 initialiser upstream's PyTorch modules give the tensor it comes from. The Flax modules of
 `rvggt_jax.nn` register each leaf with `self.param(name, spec.initializer(), shape)`;
 `rvggt_jax.init_params(config, key)` is `VGGT(config).init(...)` of those registrations.
@@ -160,9 +160,9 @@ def upstream_init(key: str, shape: tuple[int, ...], weight_shape: tuple[int, ...
 def param_specs(config: VGGTConfig, *, skip_track: bool = False) -> dict[Path, tuple[tuple[int, ...], InitSpec]]:
     """{our path: (converted shape, InitSpec)} for every leaf of the converted tree of
     `config` (in the order of upstream's state dict). The paths and shapes are the
-    converter's own (`convert.rules.converted_shapes` over `convert.shapes`)."""
-    from convert.rules import converted_shapes, find_rule
-    from convert.shapes import upstream_state_dict_shapes
+    converter's own (`rvggt_jax.convert.rules.converted_shapes` over `rvggt_jax.convert.shapes`)."""
+    from rvggt_jax.convert.rules import converted_shapes, find_rule
+    from rvggt_jax.convert.shapes import upstream_state_dict_shapes
 
     upstream = upstream_state_dict_shapes(config, skip_track=skip_track)
     out: dict[Path, tuple[tuple[int, ...], InitSpec]] = {}

@@ -1,6 +1,6 @@
 """Transformer building blocks as pure functions over parameter dicts.
 
-Parameter leaves follow the converter's conventions (see `convert/rules.py`):
+Parameter leaves follow the converter's conventions (see `rvggt_jax/convert/rules.py`):
 Linear -> {"kernel": [in, out], "bias": [out]}; LayerNorm -> {"scale", "bias"};
 the upstream fused `qkv` Linear is split into {"q", "k", "v"} Linears;
 LayerScale -> {"gamma": [C]}.
@@ -12,7 +12,7 @@ Attention tensors are token-major, `[B, N, H, D]` (the layout of
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -21,8 +21,7 @@ import numpy as np
 from rvggt_jax.attention import attention
 from rvggt_jax import chunks
 from rvggt_jax.chunks import map_tokens, update_tokens
-
-Params = Mapping[str, Any]
+from rvggt_jax.types import Params
 
 # Upstream's aggregator, camera head and DPT use torch's LayerNorm default; DINOv2 uses 1e-6.
 TORCH_LN_EPS = 1e-5

@@ -58,7 +58,7 @@ class MemoryReport:
 def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:
     """The converted parameter tree of `config` as `jax.ShapeDtypeStruct` leaves (the
     aggregator's in `param_dtype`, as `load_pretrained(..., param_dtype=...)` loads it)."""
-    from convert.convert import expected_param_shapes
+    from rvggt_jax.convert.convert import expected_param_shapes
     from rvggt_jax.checkpoint import cast_params
 
     tree = expected_param_shapes(config, skip_track=not (with_track and config.enable_track))
@@ -67,12 +67,14 @@ def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype
 
 def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
                   dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
-                  backend: str | None = None) -> MemoryReport:
+                  backend: str | None = None, mesh: Any = None) -> MemoryReport:
     """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
     `height` x `width` (multiples of the patch size) under `config`, without running it.
 
     dtype: the compute dtype (default `config.dtype`); param_dtype: the aggregator's
     weight dtype (default: the compute dtype). query_points > 0 includes the track head.
+    mesh: plan `sharded_forward` over this mesh's "frames" axis instead (the figures are
+    then per device: replicated parameters, this device's frames and exchanges).
     """
     from rvggt_jax.model import InputError, rvggt_forward
 
@@ -89,12 +91,13 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     with_track = query_points > 0
     params = abstract_params(config, with_track=with_track, param_dtype=param_dtype)
     images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), jnp.float32)
-    args = (params, images, config)
-    if with_track:
-        args += (jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32),)
+    queries = jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32) if with_track else None
     t0 = time.perf_counter()
-    jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
-    compiled = jitted.lower(*args).compile()
+    if mesh is None:
+        jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
+        compiled = jitted.lower(params, images, config, *((queries,) if with_track else ())).compile()
+    else:
+        compiled = _sharded_plan(params, images, config, queries, mesh)
     m = compiled.memory_analysis()
     seconds = time.perf_counter() - t0
     return MemoryReport(
@@ -102,6 +105,21 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
         preset=config.compression.name, argument_bytes=int(m.argument_size_in_bytes),
         output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
         alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled)
+
+
+def _sharded_plan(params, images, config, queries, mesh):
+    """`sharded_forward` over `mesh` compiled for abstract inputs placed as
+    `sharded.input_shardings` places them; the compiled program takes (params, images,
+    config[, query_points])."""
+    import functools
+
+    from rvggt_jax.sharded import input_shardings, sharded_forward
+
+    replicated, split = input_shardings(mesh, images.shape[1])
+    params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), params)
+    images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=split)
+    extra = () if queries is None else (jax.ShapeDtypeStruct(queries.shape, queries.dtype, sharding=replicated),)
+    return jax.jit(functools.partial(sharded_forward, mesh=mesh)).lower(params, images, config, *extra).compile()
 
 
 # ---------------------------------------------------------------------------------------
@@ -149,11 +167,12 @@ def device_memory_bytes() -> tuple[int | None, str]:
 
 
 def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, param_dtype: Any = None,
-               batch: int = 1) -> MemoryReport:
-    """`memory_report` of the forward, raising `InsufficientMemoryError` with what to
-    change when it needs more than `device_memory_bytes()`. Returns the report (with the
-    compiled forward) when it fits."""
-    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype)
+               batch: int = 1, mesh: Any = None) -> MemoryReport:
+    """`memory_report` of the forward (over `mesh`'s devices when given: the figure is
+    then per device), raising `InsufficientMemoryError` with what to change when it needs
+    more than `device_memory_bytes()`. Returns the report (with the compiled forward)
+    when it fits."""
+    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype, mesh=mesh)
     have, what = device_memory_bytes()
     if have is not None and rep.total_bytes > have:
         hints = []
@@ -165,8 +184,9 @@ def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, para
         fit = max(1, int(frames * have / rep.total_bytes * 0.9))
         if fit < frames:
             hints.append(f"--max-frames {fit}")
+        where = "" if mesh is None else f" on each of {mesh.devices.size} devices"
         raise InsufficientMemoryError(
             f"{frames} frames of {width}x{height} ({config.compression.name}, {config.dtype}) need "
-            f"{rep.total_bytes / 1e9:.1f} GB, {what} has {have / 1e9:.1f} GB; try "
+            f"{rep.total_bytes / 1e9:.1f} GB{where}, {what} has {have / 1e9:.1f} GB; try "
             + ", ".join(hints))
     return rep

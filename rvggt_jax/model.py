@@ -18,6 +18,7 @@ import numpy as np
 from rvggt_jax.aggregator import aggregator_forward
 from rvggt_jax.chunks import zeros_after
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.heads.camera import camera_head
 from rvggt_jax.heads.dpt import dense_heads
 from rvggt_jax.heads.track import track_head
@@ -123,26 +124,37 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
     config.validate()
     check_params(params, config)
     images = check_images(images, config)
-    b, s, _, hh, ww = images.shape
-    with_track = query_points is not None
-    if with_track:
+    b = images.shape[0]
+    if query_points is not None:
         if not config.enable_track or "track_head" not in params:
             raise InputError("query_points given but this model has no track head")
         query_points = check_query_points(query_points, b)
+    return forward_frames(params, images, config, query_points)
 
+
+def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None = None,
+                   shards: FrameShards | None = None) -> dict[str, Any]:
+    """`rvggt_forward` on checked inputs, over the frames of this device: images
+    [B, S, 3, H, W] are this device's frames (`shards`, inside `jax.shard_map`; default
+    all frames on one device) and so is every per-frame output."""
+    b, s, _, hh, ww = images.shape
+    shards = FrameShards.single(s) if shards is None else shards
+    with_track = query_points is not None
     keep = set(config.needed_layers(with_track)) | set(config.return_layers)
-    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep)
-    psi = config.patch_start_idx
+    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards)
 
     out: dict[str, Any] = {}
     if config.enable_camera:
-        pose_enc_list = camera_head(params["camera_head"], agg[config.depth - 1].token(0)[:, :, None],
-                                    config.camera_head)
+        # the camera trunk attends across frames: every device runs it on every frame's
+        # camera token (B x S x 2C floats) and keeps its own frames
+        cam = shards.gather(agg[config.depth - 1].token(0)[:, :, None], 1)
+        pose_enc_list = [shards.local_part(pe, 1) for pe in camera_head(params["camera_head"], cam, config.camera_head)]
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
     out.update(dense_heads(params, agg, (hh, ww), config))
     if with_track:
-        tracks, vis, conf = track_head(params["track_head"], agg, images, psi, query_points, config)
+        tracks, vis, conf = track_head(params["track_head"], agg, images, config.patch_start_idx, query_points,
+                                       config, shards=shards)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
     # The returned images are a copy of the input (an argument cannot be an output): made
     # from the last head output (x 1, exact) so that XLA makes it at the end, not at the

@@ -1,440 +1,297 @@
-"""The reconstruction pipeline behind `rvggt reconstruct` and `rvggt demo`:
-inputs (a folder of images or a video) -> model -> every output file.
-
-Order matters for the user: everything that can be checked cheaply (options, the input,
-the output folder being writable and not holding another run) is checked before the
-weights are loaded or downloaded and long before inference. Failures raise `CLIError`
-(one line, see `rvggt_jax.errors`); warnings go to stderr as `rvggt: warning: ...`.
+"""From images to a reconstruction in memory: `reconstruct(images, params, config)` runs
+the model and returns a `Reconstruction` (cameras in the original images' pixels, depth,
+a confidence-filtered coloured point cloud), with the predicted cameras repaired where
+they are unusable (`sanitize_cameras`) and the points chosen by confidence
+(`select_points`). Nothing here touches files: `rvggt_jax.io.export` writes a
+`Reconstruction`, `rvggt_jax.commands` is what `rvggt reconstruct` does around both.
 """
 
 from __future__ import annotations
 
-import os
-import sys
-import time
-import warnings
-from pathlib import Path
-from typing import Any, Sequence
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
 
-from rvggt_jax.errors import CLIError, one_line
+import numpy as np
 
-PROG = "rvggt"
-DEFAULT_CONF_THRESHOLD = "50%"
-EXAMPLES_DIR = Path(__file__).resolve().parent / "examples_data"
-DEMO_IMAGES = EXAMPLES_DIR / "images"
-DEMO_WEIGHTS = EXAMPLES_DIR / "tiny"
-FRAMES_DIR = "frames"  # video frames written here (the images the COLMAP model refers to)
+from rvggt_jax.geometry import nearest_rotation
 
-RANDOM_WEIGHTS_NOTICE = (
-    "NOTE: the demo runs a tiny VGGT with RANDOM weights (rvggt_jax/examples_data/tiny): it exercises "
-    "the whole pipeline, the reconstruction itself is meaningless. For real results run "
-    "`rvggt reconstruct IMAGES --weights facebook/VGGT-1B --out OUT`."
-)
+__all__ = ["Reconstruction", "build_reconstruction", "parse_threshold", "reconstruct", "reconstruction_from_outputs", "run_model",
+           "sanitize_cameras", "select_points"]
+
+POINT_SOURCES = ("depth", "pointmap")
+_OUTPUT_KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
 
 
-# ---------------------------------------------------------------------------------------
-# messages
-# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Reconstruction:
+    """One reconstructed sequence of S images (network input H x W), numpy arrays.
+
+    names        S image names
+    images       [S, 3, H, W] float32 in [0, 1], the network input
+    valid        [S, H, W] bool, image content (False on padding)
+    extrinsic    [S, 3, 4] float64 world-to-camera, OpenCV axes (x right, y down, z forward)
+    intrinsic    [S, 3, 3] float64 pinhole in the ORIGINAL image's pixels
+    sizes        S (width, height) of the original images
+    network_intrinsic  [S, 3, 3] float64 in the network input's pixels
+    depth        [S, H, W] float32, depth_conf [S, H, W] float32
+    points       [N, 3] float32 world points kept by confidence, colors [N, 3] uint8,
+                 confidences [N] float32, frames [N] int32 (the source image)
+    conf_threshold  the absolute confidence threshold used
+    repairs      one message per kind of camera repair (`sanitize_cameras`)
+    """
+
+    names: tuple[str, ...]
+    images: np.ndarray
+    valid: np.ndarray
+    extrinsic: np.ndarray
+    intrinsic: np.ndarray
+    sizes: tuple[tuple[int, int], ...]
+    network_intrinsic: np.ndarray
+    depth: np.ndarray
+    depth_conf: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    confidences: np.ndarray
+    frames: np.ndarray
+    conf_threshold: float
+    repairs: tuple[str, ...] = ()
 
 
-def _write(text: str, file) -> None:
-    """Print a line without tearing an active progress bar."""
-    try:
-        from tqdm.auto import tqdm
+def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.ndarray]:
+    """The forward pass on images [S, 3, H, W] -> numpy outputs of batch element 0
+    (`pose_enc`, `depth`, `depth_conf`, and `world_points(_conf)` with the point head).
+    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`,
+    of the sharded forward when `mesh` is given); `mesh`: split the frames over its
+    "frames" axis (`rvggt_jax.sharded_forward`)."""
+    import functools
 
-        tqdm.write(text, file=file)
-        file.flush()
-    except ImportError:  # pragma: no cover
-        print(text, file=file, flush=True)
-
-
-def say(quiet: bool, *parts: Any) -> None:
-    if not quiet:
-        _write(" ".join(map(str, parts)), sys.stdout)
-
-
-def warn(msg: str) -> None:
-    _write(f"{PROG}: warning: {one_line(msg, 1000)}", sys.stderr)
-
-
-def known_presets() -> tuple[str, ...]:
-    from rvggt_jax.compression.config import PRESETS
-
-    return tuple(PRESETS)
-
-
-def select_frames(paths: Sequence[Path], max_frames: int | None) -> list[Path]:
-    """At most `max_frames` of `paths`, evenly spaced over the sorted list, first and
-    last included (all of them when `max_frames` is None or large enough)."""
-    paths = list(paths)
-    if max_frames is None or len(paths) <= max_frames:
-        return paths
-    if max_frames == 1:
-        return paths[:1]
-    n = len(paths)
-    idx = sorted({round(i * (n - 1) / (max_frames - 1)) for i in range(max_frames)})
-    return [paths[i] for i in idx]
-
-
-# ---------------------------------------------------------------------------------------
-# model
-# ---------------------------------------------------------------------------------------
-
-
-def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None):
-    """`(params, config)` of a checkpoint (local path or hub repo id), without the
-    track head (unused here); `name` is how messages call it (default: `weights`).
-    Warnings of the loader become `rvggt: warning:` lines."""
-    from rvggt_jax.hub import HubError, resolve_checkpoint
-
-    name = weights if name is None else name
-    try:
-        local = resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
-    except HubError as e:
-        raise CLIError(str(e)) from None
-    if not Path(local).exists():
-        raise CLIError(f"checkpoint not found: {name}")
-    try:
-        from rvggt_jax import load_pretrained
-
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            loaded = load_pretrained(str(local), skip_track=True, progress=not quiet)
-        for w in caught:
-            if issubclass(w.category, UserWarning):
-                warn(str(w.message))
-        return loaded
-    except Exception as e:
-        if type(e).__name__ == "CheckpointError":
-            raise CLIError(f"checkpoint {name} does not fit the model: {e}") from None
-        if type(e).__name__ == "CheckpointFileError":
-            raise CLIError(str(e)) from None
-        raise CLIError(f"cannot load checkpoint {name}: {one_line(e)}") from None
-
-
-def enable_compilation_cache() -> str | None:
-    """Keep compiled programs across runs (the first run of a shape compiles for a while).
-
-    Directory: $RVGGT_CACHE_DIR, else $XDG_CACHE_HOME/rvggt-jax/xla (~/.cache/...);
-    RVGGT_CACHE_DIR=off disables it; a cache directory already configured for JAX
-    (JAX_COMPILATION_CACHE_DIR) is left alone. Returns the directory in use, if any."""
     import jax
 
-    try:
-        current = jax.config.jax_compilation_cache_dir
-        if current:
-            return current
-        d = os.environ.get("RVGGT_CACHE_DIR")
-        if d is None:
-            base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-            d = os.path.join(base, "rvggt-jax", "xla")
-        if d.strip().lower() in ("", "0", "off", "none", "false"):
-            return None
-        os.makedirs(d, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", d)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-        return d
-    except Exception:  # an unwritable cache only costs time
-        return None
+    from rvggt_jax.model import rvggt_forward
+
+    missing = [k for k, on in (("camera", config.enable_camera), ("depth", config.enable_depth)) if not on]
+    if missing:
+        raise ValueError(f"the model has no {' / '.join(missing)} head; a reconstruction needs the camera and "
+                         f"depth heads")
+    batch = jax.numpy.asarray(images)[None]
+    forward = rvggt_forward
+    if mesh is not None:
+        from rvggt_jax.sharded import input_shardings, sharded_forward
+
+        replicated, split = input_shardings(mesh, batch.shape[1])
+        params, batch = jax.device_put(params, replicated), jax.device_put(batch, split)
+        forward = functools.partial(sharded_forward, mesh=mesh)
+    out = (compiled if compiled is not None else jax.jit(forward))(params, batch, config)
+    return {k: np.asarray(out[k])[0] for k in _OUTPUT_KEYS if k in out}
 
 
-def run_model(params, images, config, weights, compiled=None) -> dict:
-    """The forward pass on images [S, 3, H, W] -> numpy outputs of batch element 0.
+def reconstruct(images, params, config, *, names: Sequence[str] | None = None, infos: Sequence[Any] | None = None,
+                points_from: str = "depth", conf_threshold: str | float = "50%",
+                max_points: int | None = 2_000_000, compiled=None) -> Reconstruction:
+    """Run the model on images [S, 3, H, W] (as `rvggt_jax.load_images` returns them) and
+    build the `Reconstruction` (the keyword arguments: see `build_reconstruction`);
     `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`)."""
-    import jax
-    import numpy as np
-
-    from rvggt_jax import rvggt_forward
-
-    try:
-        from rvggt_jax.model import InputError
-    except ImportError:  # pragma: no cover
-        InputError = ValueError  # type: ignore[misc,assignment]
-    needed = [k for k, on in (("pose_enc", config.enable_camera), ("depth", config.enable_depth)) if not on]
-    if needed:
-        raise CLIError(f"checkpoint {weights} has no {' / '.join(needed)} head; reconstruct needs the camera and depth heads")
-    enable_compilation_cache()
-    try:
-        if compiled is not None:
-            out = compiled(params, jax.numpy.asarray(images)[None], config)
-        else:
-            out = jax.jit(rvggt_forward)(params, images, config)
-        keys = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
-        return {k: np.asarray(out[k])[0] for k in keys if k in out}
-    except InputError as e:
-        raise CLIError(f"checkpoint {weights} does not fit the model: {one_line(e)}") from None
+    images = np.asarray(images, dtype=np.float32)
+    _check_images(images)
+    _check_options(points_from, conf_threshold, max_points)
+    if points_from == "pointmap" and not config.enable_point:
+        raise ValueError("points_from='pointmap' needs the point head; the model has none")
+    outputs = run_model(params, images, config, compiled)
+    return reconstruction_from_outputs(outputs, images, names=names, infos=infos, points_from=points_from,
+                                       conf_threshold=conf_threshold, max_points=max_points)
 
 
-def decode_cameras(pose_enc, hw):
-    """pose_enc [S, 9] -> extrinsic [S, 3, 4], intrinsic [S, 3, 3] (numpy)."""
-    import numpy as np
-
+def reconstruction_from_outputs(outputs: Mapping[str, np.ndarray], images, **kw) -> Reconstruction:
+    """The `Reconstruction` of one batch element's model outputs: `pose_enc` [S, 9] decoded
+    into cameras, then `build_reconstruction` (its keyword arguments) with `depth`,
+    `depth_conf` (and `world_points`, `world_points_conf` when present)."""
     from rvggt_jax.geometry import pose_encoding_to_extri_intri
 
-    e, k = pose_encoding_to_extri_intri(pose_enc[None], hw)
-    return np.asarray(e)[0], np.asarray(k)[0]
-
-
-# ---------------------------------------------------------------------------------------
-# inputs
-# ---------------------------------------------------------------------------------------
-
-
-def _check_local_checkpoint(weights: Path) -> None:
-    """Fail now, not after loading the images, on a checkpoint that cannot be read:
-    missing, not a safetensors/Orbax checkpoint, or a truncated .safetensors (its
-    header is read: cheap)."""
-    from rvggt_jax.checkpoint import SAFETENSORS_NAME, CheckpointFileError, safetensors_shapes
-
-    if not weights.exists():
-        raise CLIError(f"checkpoint not found: {weights}")
-    st = weights if weights.is_file() else weights / SAFETENSORS_NAME
-    if weights.is_file() and weights.suffix != ".safetensors":
-        pt = " (PyTorch .pt files are not read: use the repo's model.safetensors)" if weights.suffix in (
-            ".pt", ".pth", ".bin") else ""
-        raise CLIError(f"checkpoint {weights} is not a .safetensors file or a checkpoint folder{pt}")
-    if st.is_file():
-        try:
-            safetensors_shapes(st)
-        except CheckpointFileError as e:
-            raise CLIError(str(e)) from None
-
-
-def _image_inputs(src: Path, max_frames: int | None, quiet: bool) -> list[Path]:
-    from rvggt_jax.io.images import IMAGE_EXTENSIONS, find_images
-
-    try:
-        paths, skipped = find_images(src)
-    except (FileNotFoundError, NotADirectoryError) as e:
-        raise CLIError(str(e)) from None
-    if not paths:
-        if not skipped:
-            raise CLIError(f"image folder is empty: {src}")
-        raise CLIError(f"no images in {src} ({len(skipped)} other entries skipped; "
-                       f"image files end in {', '.join(IMAGE_EXTENSIONS)})")
-    if skipped:
-        say(quiet, f"skipping {len(skipped)} non-image entr{'y' if len(skipped) == 1 else 'ies'} in {src}")
-    chosen = select_frames(paths, max_frames)
-    if len(chosen) < len(paths):
-        say(quiet, f"using {len(chosen)} of {len(paths)} images (--max-frames {max_frames}, evenly spaced)")
-    return chosen
-
-
-def _video_inputs(src: Path, out_dir: Path, every, fps, max_frames, quiet: bool) -> list[Path]:
-    """Decode the kept frames of `src` and write them to OUT/frames/<timestamp name>.jpg
-    (the images every output refers to). Returns their paths."""
-    from rvggt_jax.io.video import DEFAULT_FPS, VideoError, video_frames
-
-    how = f"every {every} frames" if every else f"{fps or DEFAULT_FPS:g} frames per second"
-    say(quiet, f"decoding {src.name} ({how}{f', at most {max_frames}' if max_frames else ''}) ...")
-    t0 = time.perf_counter()
-    try:
-        frames = video_frames(src, every=every, fps=fps, max_frames=max_frames)
-    except (VideoError, ValueError) as e:
-        raise CLIError(str(e)) from None
-    folder = out_dir / FRAMES_DIR
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for f in frames:
-        p = folder / f"{f.name}.jpg"
-        f.image.save(p, quality=95)
-        paths.append(p)
-    say(quiet, f"kept {len(paths)} frames ({frames[0].time:.2f} s to {frames[-1].time:.2f} s) in "
-               f"{time.perf_counter() - t0:.1f} s -> {folder}")
-    return paths
-
-
-# ---------------------------------------------------------------------------------------
-# reconstruct
-# ---------------------------------------------------------------------------------------
-
-
-def reconstruct(source: str | Path, weights: str | Path, out_dir: str | Path, *, preset: str | None = None,
-                mode: str = "crop", conf_threshold: str = DEFAULT_CONF_THRESHOLD, max_frames: int | None = None,
-                points_from: str = "depth", max_points: int | None = 2_000_000, quiet: bool = False,
-                overwrite: bool = False, every: int | None = None, fps: float | None = None,
-                skip_bad: bool = False, exif_orientation: bool = True, all_colmap_points: bool = False,
-                dtype: str = "float32") -> dict:
-    """Reconstruct the images of a folder (sorted by name) or the frames of a video file
-    (`every` N-th frame or `fps` per second, default 1 per second) and write every output
-    to `out_dir`. Returns the export summary. Raises `CLIError` with a one-line message."""
-    import math
-
-    from rvggt_jax.hub import is_repo_id
-    from rvggt_jax.io.export import parse_threshold
-    from rvggt_jax.io.video import is_video
-    from rvggt_jax.outdir import Manifest, OutputDirError, prepare_output
-
-    source, out_dir = Path(source), Path(out_dir)
-    # -- cheap checks first --------------------------------------------------------------
-    if mode not in ("crop", "pad"):
-        raise CLIError(f"unknown mode {mode!r}; use crop or pad")
-    try:
-        parse_threshold(conf_threshold)
-    except ValueError as e:
-        raise CLIError(str(e)) from None
-    if max_frames is not None and max_frames < 1:
-        raise CLIError(f"--max-frames must be at least 1; got {max_frames}")
-    if preset is not None and preset not in known_presets():
-        raise CLIError(f"unknown preset {preset!r}; known presets: {', '.join(known_presets())}")
-    if dtype not in ("float32", "bfloat16"):
-        raise CLIError(f"unknown dtype {dtype!r}; use float32 or bfloat16")
-    if max_points is not None and max_points < 1:
-        raise CLIError(f"--max-points must be at least 1; got {max_points}")
-    if points_from not in ("depth", "pointmap"):
-        raise CLIError(f"unknown point source {points_from!r}; use depth or pointmap")
-    if every is not None and fps is not None:
-        raise CLIError("give --every or --fps, not both")
-    if every is not None and every < 1:
-        raise CLIError(f"--every must be at least 1; got {every}")
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise CLIError(f"--fps must be a positive number; got {fps}")
-    video = is_video(source)
-    if not source.exists():
-        raise CLIError(f"input not found: {source} (a folder of images or a video file)")
-    if source.is_file() and not video:
-        raise CLIError(f"not a folder of images or a video file: {source} (videos end in .mp4, .mov, ...)")
-    if not video and (every is not None or fps is not None):
-        raise CLIError("--every / --fps choose frames of a video; the input is a folder of images")
-    if not is_repo_id(weights):
-        _check_local_checkpoint(Path(weights))
-    if not video:
-        chosen = _image_inputs(source, max_frames, quiet)
-    created = not out_dir.exists()
-    try:
-        removed = prepare_output(out_dir, overwrite)
-    except OutputDirError as e:
-        raise CLIError(str(e)) from None
-    if removed:
-        say(quiet, f"--overwrite: removed {removed} files of the previous run in {out_dir}")
-
-    # a hub repo id: download / convert now, before reading any input (a failure here
-    # says what is missing without having made the user wait)
-    from rvggt_jax.hub import HubError, resolve_checkpoint
-
-    manifest = Manifest(out_dir)
-    try:
-        try:
-            local_weights = resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
-        except HubError as e:
-            raise CLIError(str(e)) from None
-        if video:
-            chosen = _video_inputs(source, out_dir, every, fps, max_frames, quiet)
-        return _reconstruct(chosen, weights, local_weights, out_dir, preset=preset, mode=mode, conf_threshold=conf_threshold,
-                            max_frames=max_frames, points_from=points_from, max_points=max_points, quiet=quiet,
-                            skip_bad=skip_bad, exif_orientation=exif_orientation,
-                            all_colmap_points=all_colmap_points, source=source, dtype=dtype)
-    finally:
-        if not manifest.write() and created:  # also after a failure: the next --overwrite removes exactly these
-            try:
-                out_dir.rmdir()  # a run that failed before writing anything leaves no empty folder behind
-            except OSError:
-                pass
-
-
-def _reconstruct(chosen, weights, local_weights, out_dir, *, preset, mode, conf_threshold, max_frames, points_from, max_points,
-                 quiet, skip_bad, exif_orientation, all_colmap_points, source, dtype="float32") -> dict:
-    """`reconstruct` once the inputs are chosen and the output folder is ready."""
-    from tqdm.auto import tqdm
-
-    from rvggt_jax.io.export import export_reconstruction, sanitize_cameras
-    from rvggt_jax.io.images import ImageLoadError, load_images_with_info
-
-    # -- images --------------------------------------------------------------------------
-    with tqdm(total=len(chosen), desc="loading images", unit="img", disable=quiet, leave=False) as bar:
-        def progress(it):
-            for x in it:
-                yield x
-                bar.update(1)
-
-        try:
-            images, infos = load_images_with_info(chosen, mode=mode, progress=progress,
-                                                  exif_orientation=exif_orientation,
-                                                  on_error="skip" if skip_bad else "raise")
-        except ImageLoadError as e:
-            bar.close()
-            hint = "" if skip_bad else " (--skip-bad leaves unreadable images out)"
-            raise CLIError(f"{e}{hint}") from None
-    if skip_bad:
-        loaded = {i.path for i in infos}
-        bad = [p for p in chosen if os.fspath(p) not in loaded]
-        for p in bad:
-            warn(f"--skip-bad: skipped unreadable image {p}")
-        chosen = [p for p in chosen if os.fspath(p) in loaded]
+    images = np.asarray(images, dtype=np.float32)
+    _check_images(images)
     s, _, h, w = images.shape
-    say(quiet, f"loaded {s} image{'s' * (s != 1)} -> network input {w}x{h} ({mode})")
+    pose_enc = np.asarray(outputs["pose_enc"])
+    if pose_enc.shape != (s, 9):
+        raise ValueError(f"pose_enc must be [S, 9] with S = {s}; got {pose_enc.shape}")
+    extrinsic, intrinsic = (np.asarray(a)[0] for a in pose_encoding_to_extri_intri(pose_enc[None], (h, w)))
+    return build_reconstruction(images, extrinsic, intrinsic, outputs["depth"], outputs["depth_conf"],
+                                world_points=outputs.get("world_points"),
+                                world_points_conf=outputs.get("world_points_conf"), **kw)
 
-    # -- model ---------------------------------------------------------------------------
-    stages = ["loading weights", "checking memory", "running the model", "decoding cameras", "writing outputs"]
-    t0 = time.perf_counter()
-    with tqdm(total=len(stages), unit="step", disable=quiet, leave=False, desc=f"reconstruct ({stages[0]})",
-              bar_format="{desc}: {n_fmt}/{total_fmt} [{elapsed}]") as bar:
-        def stage(i):
-            bar.set_description_str(f"reconstruct ({stages[i]})", refresh=False)
-            if i:
-                bar.update(1)
-            else:
-                bar.refresh()
 
-        stage(0)
-        params, config = load_model(local_weights, quiet, name=weights)
-        if preset is not None:
+def build_reconstruction(images, extrinsic, intrinsic, depth, depth_conf, *, world_points=None,
+                         world_points_conf=None, names: Sequence[str] | None = None,
+                         infos: Sequence[Any] | None = None, points_from: str = "depth",
+                         conf_threshold: str | float = "50%", max_points: int | None = 2_000_000) -> Reconstruction:
+    """A `Reconstruction` from predicted cameras and maps at network resolution.
+
+    images [S, 3, H, W] in [0, 1]; extrinsic [S, 3, 4] world-to-camera; intrinsic
+    [S, 3, 3] in network pixels; depth [S, H, W(, 1)], depth_conf [S, H, W];
+    world_points [S, H, W, 3] and world_points_conf [S, H, W] for
+    `points_from="pointmap"` (`"depth"` unprojects the depth maps with the cameras,
+    upstream's default). names [S] (default `frame_000`, ...); infos [S] `ImageInfo` of
+    `load_images_with_info` (None: network pixels are the original pixels). Unusable
+    cameras are repaired (`sanitize_cameras`, messages in `repairs`); conf_threshold /
+    max_points choose the points (`select_points`)."""
+    images = np.asarray(images, dtype=np.float32)
+    _check_images(images)
+    _check_options(points_from, conf_threshold, max_points)
+    s, _, h, w = images.shape
+    names = tuple(f"frame_{i:03d}" for i in range(s)) if names is None else tuple(names)
+    infos = [None] * s if infos is None else list(infos)
+    if len(names) != s or len(infos) != s:
+        raise ValueError(f"{s} images need {s} names and infos; got {len(names)} and {len(infos)}")
+    extrinsic, intrinsic, repairs = sanitize_cameras(extrinsic, intrinsic, (h, w))
+    depth = np.asarray(depth, dtype=np.float32)
+    depth = depth[..., 0] if depth.ndim == 4 else depth
+    depth_conf = np.asarray(depth_conf, dtype=np.float32)
+    if depth.shape != (s, h, w) or depth_conf.shape != (s, h, w):
+        raise ValueError(f"depth and depth_conf must be [S, H, W] = {(s, h, w)}; got {depth.shape}, "
+                         f"{depth_conf.shape}")
+    valid = np.stack([np.ones((h, w), bool) if info is None else info.valid_mask(h, w) for info in infos])
+    colors = (np.clip(images.transpose(0, 2, 3, 1), 0, 1) * 255 + 0.5).astype(np.uint8)
+
+    if points_from == "depth":
+        pts, conf, pvalid = _unproject(depth, extrinsic, intrinsic), depth_conf, valid & (depth > 1e-8)
+    else:
+        if world_points is None or world_points_conf is None:
+            raise ValueError("points_from='pointmap' needs world_points and world_points_conf")
+        pts = np.asarray(world_points, dtype=np.float32)
+        conf, pvalid = np.asarray(world_points_conf, dtype=np.float32), valid
+    points, point_colors, threshold, idx = select_points(pts, conf, colors, pvalid, conf_threshold, max_points,
+                                                         return_index=True)
+    original_k = np.stack([intrinsic[i] if info is None else info.intrinsic_to_original(intrinsic[i])
+                           for i, info in enumerate(infos)])
+    sizes = tuple((w, h) if info is None else (info.width, info.height) for info in infos)
+    return Reconstruction(
+        names=names, images=images, valid=valid, extrinsic=extrinsic, intrinsic=original_k, sizes=sizes,
+        network_intrinsic=intrinsic, depth=depth, depth_conf=depth_conf, points=points, colors=point_colors,
+        confidences=conf.reshape(-1)[idx].astype(np.float32), frames=(idx // (h * w)).astype(np.int32),
+        conf_threshold=threshold, repairs=tuple(repairs))
+
+
+def _check_images(images: np.ndarray) -> None:
+    if images.ndim != 4 or images.shape[1] != 3 or images.shape[0] < 1:
+        raise ValueError(f"images must be [S, 3, H, W] with S >= 1; got {images.shape}")
+
+
+def _check_options(points_from: str, conf_threshold, max_points) -> None:
+    if points_from not in POINT_SOURCES:
+        raise ValueError(f"points_from must be 'depth' or 'pointmap'; got {points_from!r}")
+    parse_threshold(conf_threshold)
+    if max_points is not None and max_points < 1:
+        raise ValueError(f"max_points must be at least 1; got {max_points}")
+
+
+def sanitize_cameras(extrinsic: np.ndarray, intrinsic: np.ndarray, image_hw: tuple[int, int],
+                     default_fov_deg: float = 60.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Make predicted cameras writable: extrinsic [S, 3, 4], intrinsic [S, 3, 3] ->
+    copies with unusable values replaced, and a message per kind of replacement.
+
+    A focal length that is not finite and positive (e.g. a predicted field of view of
+    0, as random weights give) takes the other axis' focal when that one is usable,
+    else the focal of a `default_fov_deg` horizontal field of view; non-finite
+    rotations become the identity (re-orthonormalised otherwise) and non-finite
+    translations 0. The principal point is the image centre `(W/2, H/2)` if not finite.
+    """
+    e = np.array(extrinsic, dtype=np.float64, copy=True)
+    k = np.array(intrinsic, dtype=np.float64, copy=True)
+    h, w = image_hw
+    msgs: dict[str, list[int]] = {}
+
+    def note(msg, i):
+        msgs.setdefault(msg, []).append(i)
+
+    def usable(f):
+        return bool(np.isfinite(f) and f > 0 and f < 1e6 * max(h, w))
+
+    for i in range(len(e)):
+        fx, fy = k[i, 0, 0], k[i, 1, 1]
+        if not usable(fx) or not usable(fy):
+            default = (w / 2) / np.tan(np.radians(default_fov_deg) / 2)
+            good = fx if usable(fx) else fy if usable(fy) else default
+            note("unusable predicted focal length replaced" + ("" if usable(fx) or usable(fy) else
+                 f" by a {default_fov_deg:g} degree field of view"), i)
+            k[i, 0, 0] = fx if usable(fx) else good
+            k[i, 1, 1] = fy if usable(fy) else good
+        if not np.isfinite(k[i, :2, 2]).all():
+            k[i, 0, 2], k[i, 1, 2] = w / 2, h / 2
+            note("non-finite principal point replaced by the image centre", i)
+        if not np.isfinite(e[i, :, :3]).all():
+            e[i, :, :3] = np.eye(3)
+            note("non-finite rotation replaced by the identity", i)
+        else:
+            e[i, :, :3] = nearest_rotation(e[i, :, :3])
+        if not np.isfinite(e[i, :, 3]).all():
+            e[i, :, 3] = 0.0
+            note("non-finite translation replaced by 0", i)
+    return e, k, [f"{m} (frame{'s' if len(ix) > 1 else ''} {', '.join(map(str, ix))})" for m, ix in msgs.items()]
+
+
+def select_points(points: np.ndarray, conf: np.ndarray, colors: np.ndarray, valid: np.ndarray | None,
+                  threshold: str | float = "50%", max_points: int | None = None,
+                  seed: int = 0, return_index: bool = False) -> tuple:
+    """Filter a point map by confidence.
+
+    points [S, H, W, 3], conf [S, H, W], colors [S, H, W, 3] uint8, valid [S, H, W]
+    (image content, not padding). `threshold`: a number X keeps points with
+    conf >= X (VGGT's confidences are 1 + exp(.) >= 1); a string "P%" keeps points at
+    or above the P-th percentile of the confidences of valid pixels ("0%" keeps all).
+    Non-finite points are dropped. At most `max_points` are kept (uniform random
+    subset, fixed seed). Returns points [N, 3] float32, colors [N, 3] uint8 and the
+    absolute confidence threshold used; with `return_index`, also the kept points'
+    flat indices [N] into [S * H * W] (frame = index // (H * W)).
+    """
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    cf = np.asarray(conf, dtype=np.float32).reshape(-1)
+    col = np.asarray(colors).reshape(-1, 3)
+    ok = np.all(np.isfinite(pts), axis=1) & np.isfinite(cf)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool).reshape(-1)
+    thr = parse_threshold(threshold)
+    if isinstance(thr, tuple):
+        abs_thr = float(np.percentile(cf[ok], thr[0])) if ok.any() else 0.0
+    else:
+        abs_thr = float(thr)
+    ok &= cf >= abs_thr
+    idx = np.flatnonzero(ok)
+    if max_points is not None and len(idx) > max_points:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, size=max_points, replace=False))
+    if return_index:
+        return pts[idx], col[idx].astype(np.uint8), abs_thr, idx
+    return pts[idx], col[idx].astype(np.uint8), abs_thr
+
+
+def parse_threshold(threshold: str | float) -> float | tuple[float]:
+    """`"P%"` -> (P,) (a percentile in [0, 100]); a number or numeric string -> float.
+    NaN and infinities are refused (a NaN threshold would keep no point, silently)."""
+    value = _parse_threshold(threshold)
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"bad confidence threshold {threshold!r}: must be a finite number or a percentage like '50%'")
+    return value
+
+
+def _parse_threshold(threshold: str | float) -> float | tuple[float]:
+    if isinstance(threshold, str):
+        s = threshold.strip()
+        if s.endswith("%"):
             try:
-                config = config.with_compression(preset)
-            except ValueError as e:
-                raise CLIError(one_line(e)) from None
-        if points_from == "pointmap" and not config.enable_point:
-            raise CLIError(f"checkpoint {weights} has no point head; use --points depth")
-        if dtype != config.dtype:
-            from rvggt_jax.checkpoint import cast_params
-
-            config, params = config.with_dtype(dtype), cast_params(params, dtype)
-        stage(1)
-        # XLA's own plan of this forward (compiled, not run; the run uses the same
-        # compiled program): refuse before running rather than die in the middle
-        from rvggt_jax.memory import InsufficientMemoryError, check_fits
-
-        enable_compilation_cache()
+                p = float(s[:-1])
+            except ValueError:
+                raise ValueError(f"bad confidence threshold {threshold!r}: expected a number or a percentage like '50%'") from None
+            if not 0.0 <= p <= 100.0:
+                raise ValueError(f"confidence percentile must be in [0, 100]; got {threshold!r}")
+            return (p,)
         try:
-            report = check_fits(config, s, h, w, param_dtype=dtype)
-        except (InsufficientMemoryError, ValueError) as e:
-            raise CLIError(str(e)) from None
-        stage(2)
-        out = run_model(params, images, config, weights, compiled=report.compiled)
-        stage(3)
-        extrinsic, intrinsic = decode_cameras(out["pose_enc"], (h, w))
-        extrinsic, intrinsic, fixes = sanitize_cameras(extrinsic, intrinsic, (h, w))
-        for msg in fixes:
-            warn(msg)
-        stage(4)
-        meta = dict(source=str(source), weights=str(weights), preset=config.compression.name, mode=mode,
-                    conf_threshold=str(conf_threshold), points_from=points_from,
-                    exif_orientation=exif_orientation)
-        summary = export_reconstruction(
-            out_dir, [Path(p).name for p in chosen], images, infos, extrinsic, intrinsic,
-            out["depth"], out["depth_conf"], out.get("world_points"), out.get("world_points_conf"),
-            points_from=points_from, conf_threshold=conf_threshold, max_points=max_points,
-            max_colmap_points=None if all_colmap_points else 100_000, meta=meta)
-        bar.update(1)
-    summary["seconds"] = time.perf_counter() - t0
-    if summary["points"] == 0:
-        warn(f"no point passed the confidence threshold {conf_threshold}; points.ply is empty "
-             f"(lower --conf-threshold, e.g. '0%')")
-    if summary.get("colmap_renamed"):
-        warn(f"COLMAP image names cannot contain spaces: {len(summary['colmap_renamed'])} name(s) written with "
-             f"'_' in sparse/images.txt (e.g. {summary['colmap_renamed'][0][1]!r})")
-    say(quiet, f"wrote {out_dir}: {summary['frames']} cameras, {summary['points']} points "
-               f"(confidence >= {summary['conf_threshold']:.4g}) in {summary['seconds']:.1f} s")
-    return summary
+            return float(s)
+        except ValueError:
+            raise ValueError(f"bad confidence threshold {threshold!r}: expected a number or a percentage like '50%'") from None
+    return float(threshold)
 
 
-def demo(out_dir: str | Path = "rvggt_demo", preset: str | None = None, quiet: bool = False,
-         overwrite: bool = False, dtype: str = "float32") -> dict:
-    """Run `reconstruct` on the bundled images with the bundled random-weight model."""
-    print(RANDOM_WEIGHTS_NOTICE, flush=True)
-    if not DEMO_WEIGHTS.exists() or not DEMO_IMAGES.exists():
-        raise CLIError(f"bundled demo data missing under {EXAMPLES_DIR} (broken install?)")
-    summary = reconstruct(DEMO_IMAGES, DEMO_WEIGHTS, out_dir, preset=preset, quiet=quiet, overwrite=overwrite,
-                          dtype=dtype)
-    say(quiet, f"demo outputs in {out_dir} (random weights: meaningless geometry)")
-    return summary
+def _unproject(depth: np.ndarray, extrinsic: np.ndarray, intrinsic: np.ndarray) -> np.ndarray:
+    """World points [S, H, W, 3] of depth [S, H, W]: upstream's unprojection (pixel
+    (col, row) at integer coordinates), via `rvggt_jax.geometry`."""
+    from rvggt_jax.geometry import unproject_depth_map_to_point_map
+
+    return np.asarray(unproject_depth_map_to_point_map(depth, extrinsic, intrinsic), dtype=np.float32)

@@ -100,7 +100,7 @@ class Viewer:
     """The scene and panel of one reconstruction on a `viser.ViserServer`."""
 
     def __init__(self, server, rec: Reconstruction):
-        from rvggt_jax.io.export import rotmat_to_qvec
+        from rvggt_jax.io.colmap import colmap_qvec
 
         self.server, self.rec = server, rec
         server.scene.set_up_direction("-y")  # OpenCV world: y points down
@@ -121,7 +121,7 @@ class Viewer:
             fov = 2 * np.arctan2(h / 2, fy) if fy > 0 else np.deg2rad(60)
             self.frustums.append(server.scene.add_camera_frustum(
                 f"/cameras/frame_{i:03d}", fov=float(fov), aspect=w / h, scale=self.scale,
-                image=rec.thumbnails[i], wxyz=rotmat_to_qvec(r_c2w), position=center, color=self._color(i, False)))
+                image=rec.thumbnails[i], wxyz=colmap_qvec(r_c2w), position=center, color=self._color(i, False)))
         self._place_initial_camera()
         self.cloud = None
         self._lock = threading.Lock()

@@ -40,8 +40,8 @@ def test_lone_safetensors_layout_inferred(tmp_path):
 
 
 def test_1b_shapes_need_no_config():
-    from convert.infer import infer_config
-    from convert.shapes import upstream_state_dict_shapes
+    from rvggt_jax.convert.infer import infer_config
+    from rvggt_jax.convert.shapes import upstream_state_dict_shapes
 
     config, assumed = infer_config(upstream_state_dict_shapes(VGGTConfig()))
     assert config == VGGTConfig() and assumed == []

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rvggt_jax.io.export import read_colmap_text, read_depth_png, read_ply
+from tests._readers import read_colmap_text, read_depth_png, read_ply
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "tests" / "data" / "vggt_tiny"

@@ -11,7 +11,7 @@ from conftest import rel_err
 from rvggt_jax import layers
 from rvggt_jax.compression import PRESETS, global_block, init_state, layer_plan, record_shapes
 from rvggt_jax.compression.partition import kv_static_keep, partition, stride_protected
-from rvggt_jax.compression.testing import (
+from tests._compression_reference import (
     global_positions,
     kept_by_rule,
     random_block_params,
@@ -116,9 +116,49 @@ def test_block_equals_float64_reference(block_params, case):
         extra = np.flatnonzero(prot[bi]) if cc.duplicate_protected and plan.kind == "merge" else None
         if extra is not None and cc.protect == "saliency":
             extra = np.asarray(init_state(cfg, sal, S, (H, W))["protected_pos"][bi])
+        if extra is not None:  # the authors duplicate only the protected dst
+            extra = extra[part.is_dst[extra]]
         ref = reference_block(block_params, np.asarray(x[bi]), pos, HEADS, cfg.rope_freq, parent,
                               keep[bi] if plan.tile != (1, 1) else None, size_bias=cc.size_bias, extra_pos=extra)
         assert rel_err(out[bi], ref) <= 2e-5, (name, layer)
+
+
+def test_duplicate_protected_duplicates_only_protected_dst(block_params):
+    """Hand-computed: 2 frames of 2 x 4 patches (+5 special tokens each), N = 26.
+    dst (seed -1: top-left of each 2 x 2 cell) = frame 0 (0-12), frame 1's specials
+    (13-17) and patches 18, 20; src = 19, 21-25. Stride protection with alpha 0.5 protects
+    13 tokens at stride 2: 0, 2, ..., 24. Of these, 22 and 24 are src: the authors drop
+    them from both the merged and the unmerged lists (they are kept, once), so only the
+    11 protected dst 0, 2, ..., 20 come a second time among the keys."""
+    s, h, w = 2, 2, 4
+    n = s * (NS + h * w)
+    cfg = BASE.with_compression("fastvggt", alpha=0.5, dst_seed=-1, duplicate_protected=True)
+    cc = cfg.compression
+    part = partition(s, h, w, NS, cc.dst_seed)
+    np.testing.assert_array_equal(np.flatnonzero(~part.is_dst), [19, 21, 22, 23, 24, 25])
+    np.testing.assert_array_equal(stride_protected(n, cc.alpha), np.arange(0, 26, 2))
+    duplicated = np.array([0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20])
+    plan = layer_plan(cc, 0, s, h, w, NS)
+    # r = min(int(0.9 * 26), 6 src - 2 protected src) = 4: 19, 21, 23, 25 merge, 22 and 24 stay
+    assert (plan.r, plan.n_unm, plan.n_query) == (4, 2, 22)
+    assert plan.n_dup == 13 and plan.expected_dup == duplicated.size and plan.masked
+
+    x, sal = _data(7, s=s, h=h, w=w)  # stride protection ignores the saliency (its batch size only)
+    pos = global_positions(s, h, w)
+    out, _ = global_block(block_params, x, pos, 0, cfg, init_state(cfg, sal, s, (h, w)))
+    protected = np.zeros(n, bool)
+    protected[stride_protected(n, cc.alpha)] = True
+    xn = np.asarray(layers.layer_norm(block_params["norm1"], x), np.float64)
+    for bi in range(x.shape[0]):
+        parent, _ = reference_match(xn[bi], part.is_dst, protected, plan.r)
+        assert (parent[[22, 24]] == [22, 24]).all() and (parent[[19, 21, 23, 25]] != [19, 21, 23, 25]).all()
+        ref = reference_block(block_params, np.asarray(x[bi]), pos, HEADS, cfg.rope_freq, parent, None,
+                              size_bias=False, extra_pos=duplicated)
+        assert rel_err(out[bi], ref) <= 2e-5
+        # every protected token duplicated (the old behaviour) is a different block
+        every = reference_block(block_params, np.asarray(x[bi]), pos, HEADS, cfg.rope_freq, parent, None,
+                                size_bias=False, extra_pos=np.arange(0, 26, 2))
+        assert rel_err(out[bi], every) > 1e-3
 
 
 def test_frame_layers_attend_within_each_frame(block_params):

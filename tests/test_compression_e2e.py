@@ -72,7 +72,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
 
     def loop(p, images):
         tokens, sal = patch_embed(p["patch_embed"], images, cfg)
-        x = jnp.concatenate([special_tokens(p["camera_token"], b, s), special_tokens(p["register_token"], b, s),
+        x = jnp.concatenate([special_tokens(p["camera_token"], b, jnp.arange(s)), special_tokens(p["register_token"], b, jnp.arange(s)),
                              tokens], axis=1)
         n, num, c = x.shape
         pos = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(h, w, 5))[None], cfg.head_dim,

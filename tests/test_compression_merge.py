@@ -10,7 +10,7 @@ from rvggt_jax.compression import make_compression
 from rvggt_jax.compression import merge as merge_lib
 from rvggt_jax.compression.partition import partition
 from rvggt_jax.compression.plan import layer_plan
-from rvggt_jax.compression.testing import reference_match
+from tests._compression_reference import identity_match, reference_match
 
 S, H, W, NS = 4, 5, 7, 5
 L = NS + H * W
@@ -87,7 +87,7 @@ def test_protected_never_merged_and_sizes_count_groups():
 
 def test_merge_unmerge_identity_and_group_outputs():
     x = jnp.asarray(np.random.default_rng(1).standard_normal((2, N, 6)), jnp.float32)
-    ident = merge_lib.identity_match(N, 2)
+    ident = identity_match(N, 2)
     np.testing.assert_array_equal(merge_lib.unmerge(merge_lib.merge(x, ident, N), ident), x)
 
     cc = make_compression("regime", 24, merge_ratio=(0.7, 0.7, 0.7))
@@ -127,8 +127,8 @@ def test_dynamic_kv_slots_hold_exactly_the_kept_unmerged_src():
 
 def test_band_cache_reuse_and_recompute():
     from rvggt_jax.compression import global_block, init_state
-    from rvggt_jax.compression.testing import global_positions, random_block_params
     from rvggt_jax.config import VGGTConfig
+    from tests._compression_reference import global_positions, random_block_params
 
     cfg = VGGTConfig(embed_dim=32, num_heads=2).with_compression("regime")
     p = random_block_params(jax.random.PRNGKey(0), 32, 2)

@@ -13,7 +13,7 @@ import pytest
 from safetensors import safe_open
 from safetensors.numpy import save_file
 
-from convert import (
+from rvggt_jax.convert import (
     RULES,
     CheckpointError,
     convert_state_dict,
@@ -25,7 +25,7 @@ from convert import (
     main,
     upstream_state_dict_shapes,
 )
-from convert.rules import apply_rule, converted_shapes, matching_rules
+from rvggt_jax.convert.rules import apply_rule, converted_shapes, matching_rules
 from rvggt_jax.checkpoint import load_pretrained, save_orbax
 from rvggt_jax.config import VGGTConfig
 

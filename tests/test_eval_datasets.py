@@ -133,7 +133,7 @@ def test_nrgbd_keyframe_stride_is_capped_at_half_the_frames(tmp_path):
 
 
 def test_colmap_text_model_and_ascii_ply(scene, tmp_path):
-    from rvggt_jax.io.export import write_colmap_text
+    from rvggt_jax.io.colmap import write_colmap_text
 
     d = write_scene(scene, "tnt", tmp_path)
     model = d / "sparse" / "0"

@@ -8,29 +8,21 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rvggt_jax.io.export import (
-    camera_centers,
-    export_reconstruction,
-    parse_threshold,
-    qvec_to_rotmat,
-    read_colmap_text,
-    read_depth_png,
-    read_ply,
-    rotmat_to_qvec,
-    select_points,
-    unique_stems,
-    write_cameras_json,
-    write_colmap_text,
-    write_depth_pngs,
-    write_ply,
-    write_trajectory_png,
-)
+from rvggt_jax.geometry import camera_centers
+from rvggt_jax.io.cameras import write_cameras_json
+from rvggt_jax.io.colmap import colmap_qvec, colmap_rotation, write_colmap_text
+from rvggt_jax.io.depth import write_depth_pngs
+from rvggt_jax.io.export import export_reconstruction, unique_stems
 from rvggt_jax.io.images import ImageInfo
+from rvggt_jax.io.plots import write_trajectory_png
+from rvggt_jax.io.ply import write_ply
+from rvggt_jax.pipeline import build_reconstruction, parse_threshold, select_points
+from tests._readers import read_colmap_text, read_depth_png, read_ply
 
 
 def _random_rotation(rng):
     q = rng.normal(size=4)
-    return qvec_to_rotmat(q / np.linalg.norm(q))
+    return colmap_rotation(q / np.linalg.norm(q))
 
 
 def _cameras(rng, s=4):
@@ -75,12 +67,15 @@ def test_quaternions():
     rng = np.random.default_rng(1)
     for _ in range(200):
         R = _random_rotation(rng)
-        q = rotmat_to_qvec(R)
+        q = colmap_qvec(R)
         assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
-        np.testing.assert_allclose(qvec_to_rotmat(q), R, atol=1e-10)
+        np.testing.assert_allclose(colmap_rotation(q), R, atol=1e-10)
+    # COLMAP's order is scalar first: 90 degrees about z is (cos 45, 0, 0, sin 45)
+    rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    np.testing.assert_allclose(colmap_qvec(rz), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-15)
     # 180-degree rotations (trace -1) and identity
     for R in (np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]), np.eye(3)):
-        np.testing.assert_allclose(qvec_to_rotmat(rotmat_to_qvec(R)), R, atol=1e-12)
+        np.testing.assert_allclose(colmap_rotation(colmap_qvec(R)), R, atol=1e-12)
 
 
 def test_colmap_round_trip(tmp_path):
@@ -103,7 +98,7 @@ def test_colmap_round_trip(tmp_path):
         np.testing.assert_allclose(cam["params"], [k[i, 0, 0], k[i, 1, 1], k[i, 0, 2], k[i, 1, 2]])
         im = m["images"][i + 1]
         assert im["name"] == names[i] and im["camera_id"] == i + 1 and im["points2d"] == []
-        np.testing.assert_allclose(qvec_to_rotmat(im["qvec"]), ext[i, :, :3], atol=1e-12)
+        np.testing.assert_allclose(colmap_rotation(im["qvec"]), ext[i, :, :3], atol=1e-12)
         np.testing.assert_allclose(im["tvec"], ext[i, :, 3])
     assert len(m["points"]) == 50
     p = m["points"][8]
@@ -205,7 +200,8 @@ def test_export_reconstruction_synthetic(tmp_path):
     infos.append(ImageInfo(path="/x/f2.png", name="f2.png", width=64, height=56, sx=0.5, sy=0.5, ox=10.0, oy=0.0,
                            valid=(10, 0, w, h)))
     names = [i.name for i in infos]
-    summary = export_reconstruction(tmp_path, names, images, infos, ext, k, depth, conf, conf_threshold="0%")
+    recon = build_reconstruction(images, ext, k, depth, conf, names=names, infos=infos, conf_threshold="0%")
+    summary = export_reconstruction(tmp_path, recon)
     pts, cols = read_ply(tmp_path / "points.ply")
     assert len(pts) == summary["points"] == s * h * w - h * 10
     np.testing.assert_allclose(pts[:, 2], 2.0, atol=1e-5)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import rvggt_jax
-from convert.convert import expected_param_shapes
+from rvggt_jax.convert.convert import expected_param_shapes
 from rvggt_jax.config import DPTHeadConfig, TrackHeadConfig, VGGTConfig
 from rvggt_jax.init import BLOCK, InitSpec, draw
 from rvggt_jax.model import rvggt_forward

@@ -59,7 +59,7 @@ def ckpt(tmp_path_factory):
 
 
 def reconstruct(*args, **kw):
-    from rvggt_jax.pipeline import reconstruct as r
+    from rvggt_jax.commands import reconstruct_folder as r
 
     kw.setdefault("quiet", True)
     return r(*args, **kw)

@@ -242,10 +242,19 @@ def test_feature_pyramid_odd_sizes():
     np.testing.assert_allclose(np.asarray(pyr[1])[0, 0, 1, 1, 0], x[0, 0, 2:4, 2:4, 0].mean())
 
 
+def sincos_grid_embed(dim: int, h: int, w: int) -> np.ndarray:
+    """Upstream `get_2d_sincos_pos_embed(dim, (h, w))` as an NHWC map [h, w, dim]:
+    channels [0, dim/2) embed the column (x), [dim/2, dim) the row (y). The tracker never
+    builds it (it samples the separable tables, `sample_grid_embed`); the test does."""
+    tx, ty = trk._sincos_table(dim // 2, w), trk._sincos_table(dim // 2, h)
+    return np.concatenate([np.broadcast_to(tx[None], (h, w, dim // 2)),
+                           np.broadcast_to(ty[:, None], (h, w, dim // 2))], axis=-1)
+
+
 def test_sincos_embeddings():
     # 2D grid embedding: x (column) half first; sin block then cos block per half.
     dim, h, w = 12, 3, 5
-    grid = trk.sincos_grid_embed(dim, h, w)
+    grid = sincos_grid_embed(dim, h, w)
     omega = 1.0 / 10000.0 ** (np.arange(3) / 3.0)
     np.testing.assert_allclose(grid[1, 4, :3], np.sin(4 * omega), rtol=1e-6)
     np.testing.assert_allclose(grid[1, 4, 3:6], np.cos(4 * omega), rtol=1e-6)

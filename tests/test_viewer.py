@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rvggt_jax.io.export import write_cameras_json
+from rvggt_jax.io.cameras import write_cameras_json
 from rvggt_jax.io.ply import write_ply
 
 S = 4

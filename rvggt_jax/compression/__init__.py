@@ -6,11 +6,12 @@
 See docs/method.md.
 """
 
-from rvggt_jax.compression.block import Geometry, empty_match, global_block, init_state, record_shapes
+from rvggt_jax.compression.block import (Geometry, dense_global_block, empty_match, global_block, init_state,
+                                         record_shapes)
 from rvggt_jax.compression.config import PRESETS, CompressionConfig, make_compression, sigma_to_tile
 from rvggt_jax.compression.plan import LayerPlan, layer_plan
 
 __all__ = [
-    "CompressionConfig", "Geometry", "empty_match", "LayerPlan", "PRESETS", "global_block", "init_state", "layer_plan",
+    "CompressionConfig", "Geometry", "dense_global_block", "empty_match", "LayerPlan", "PRESETS", "global_block", "init_state", "layer_plan",
     "make_compression", "record_shapes", "sigma_to_tile",
 ]

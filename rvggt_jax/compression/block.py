@@ -14,6 +14,14 @@ The state is a dict:
   protected_pos [B, P] int32, their positions (saliency protection)
   match      {cache key: match} (see merge.py), the band-aligned match cache
   kv         {cache key + K/V rule: (idx, valid)}, the dynamic K/V slots of cached matches
+  shards     static `FrameShards`: the frames of x on this device (absent: all of them)
+
+Split over devices (`FrameShards`), x holds this device's frames and the state is
+sequence-wide on every device. What a layer exchanges: dense, K and V of every token
+(all-gather); K/V downsampling, the kept tokens' rows (one psum of their rows); merging,
+the dst tokens' unit metric rows and every src's best score (matching), the group sums
+of Q (psum-scatter: each device keeps its share of the merged queries), K and V (psum),
+and the merged attention's output rows (all-gather). See docs/sharding.md.
 """
 
 from __future__ import annotations
@@ -26,7 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import chunks, layers
-from rvggt_jax.attention import attention, log_sizes
+from rvggt_jax.attention import NEG_BIAS, attention, log_sizes, ring_attention
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.compression import kv as kv_lib
 from rvggt_jax.compression import merge as merge_lib
 from rvggt_jax.compression.partition import kv_static_keep, partition, saliency_protect_count, stride_protected
@@ -120,6 +129,28 @@ def plan_for(config, layer: int, geom: Geometry) -> LayerPlan:
     return layer_plan(config.compression, layer, geom.frames, geom.h, geom.w, geom.num_special)
 
 
+def dense_global_block(p_block, x: jax.Array, pos, config, shards: FrameShards | None = None,
+                       per_frame: int = 0) -> jax.Array:
+    """A dense global block over x [B, N, C]. Split over devices (`shards`: x holds this
+    device's frames, `per_frame` tokens each), its queries attend to every device's keys,
+    which travel around the devices (`ring_attention`); padding frames are masked."""
+    heads, dtype = config.num_heads, config.compute_dtype
+    if shards is None or not shards.sharded:
+        return layers.block(p_block, x, heads, pos, config.rope_freq, dtype=dtype)
+    b, n, c = x.shape
+    if not isinstance(pos, layers.RopeTables):
+        pos = layers.RopeTables.from_positions(pos, c // heads, config.rope_freq)
+    q, k, v = layers.normed_qkv(p_block, x, heads, pos, dtype=dtype)
+    mask = None
+    if shards.padded > shards.frames:
+        real = shards.offset(per_frame) + jnp.arange(n) < shards.frames * per_frame
+        mask = jnp.broadcast_to(jnp.where(real, 0.0, NEG_BIAS).astype(jnp.float32), (b, n))
+    out = ring_attention(q, k, v, mask, shards)
+    proj = p_block["attn"]["proj"]
+    return layers.finish_block(p_block, x, lambda oc: layers.linear(proj, oc.reshape(oc.shape[:2] + (c,))), (out,),
+                               dtype=dtype)
+
+
 def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State,
                  fresh: jax.Array | None = None) -> tuple[jax.Array, State]:
     """One global block under the configured compression.
@@ -136,19 +167,20 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     cc = config.compression
     geom: Geometry = state["geometry"]
     plan = plan_for(config, layer, geom)
+    shards = state.get("shards") or FrameShards.single(geom.frames)
+    L = geom.per_frame
     b, n, c = x.shape
-    if n != plan.tokens:
-        raise ValueError(f"global block {layer}: {n} tokens but the state describes {plan.tokens}")
+    if n != shards.local * L:
+        raise ValueError(f"global block {layer}: {n} tokens but the state describes {shards.local * L}")
     heads, freq, dtype = config.num_heads, config.rope_freq, config.compute_dtype
     d = c // heads
 
     if plan.kind == "dense":
         _log(layer=layer, kind="dense", queries=n, kv=n, head_dim=d)
-        return layers.block(p_block, x, heads, pos, freq, dtype=dtype), state
+        return dense_global_block(p_block, x, pos, config, shards, L), state
     if plan.kind == "frame":
-        L = geom.per_frame
         _log(layer=layer, kind="frame", queries=L, kv=L, head_dim=d)
-        out = layers.block(p_block, x.reshape(b * geom.frames, L, c), heads, pos[:, :L], freq, dtype=dtype)
+        out = layers.block(p_block, x.reshape(b * shards.local, L, c), heads, pos[:, :L], freq, dtype=dtype)
         return out.reshape(b, n, c), state
 
     state = dict(state)
@@ -169,7 +201,7 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             sel = jnp.concatenate([sel, idx], axis=1)
             valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
             log_g = log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
-        kk, vv = _rows_kv(p_block, x, sel, pos, heads, dtype)
+        kk, vv = _rows_kv(p_block, x, sel, pos, heads, dtype, shards, L)
         _log(layer=layer, kind="kv", queries=n, kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
         return layers.attend_rows(p_block, x, (pos.cos, pos.sin), kk, vv, heads, log_g, dtype=dtype), state
 
@@ -178,7 +210,7 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         # the norm1 metric is applied to the rows the matching gathers, never to all of x
         norm1 = None if plan.metric == "input" else (lambda rows: layers.layer_norm(p_block["norm1"], rows, dtype=dtype))
         prot_src = None if protected is None else jnp.take(protected, part.src_pos, axis=1, mode="clip")
-        return merge_lib.compute_match(x, prot_src, part, plan, cc.match_chunk, dtype, norm1)
+        return merge_lib.compute_match(x, prot_src, part, plan, cc.match_chunk, dtype, norm1, shards, L)
 
     if plan.match == "reuse":
         if plan.match_key not in state["match"]:
@@ -196,13 +228,42 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     # Group means of q, k, v (after qk-norm and RoPE), summed chunk by chunk as they are
     # projected: no full-sequence Q, K or V. One pass each, so that one float32 sum
     # [B, N_m, C] exists at a time (the norm is recomputed, a small price).
-    qm, km, vm = (merge_lib.merge_map(layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, part),
-                                      (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2)[0]
-                  for part in "qkv")
+    # Over devices, the merged rows are split in `rows` per device (a padding group at
+    # N_m collects the padding frames' tokens); each device projects its own tokens and
+    # the group sums are reduce-scattered one block at a time (`ring_sum_scatter`): no
+    # device holds the sums of every group.
     sizes = match["sizes"]
+    n_groups = plan.n_query + int(shards.padded > shards.frames)
+    rows = shards.share(n_groups)
+    group = shards.local_part(match["group"], 1, L, pad_value=plan.n_query)
+    first_row = shards.index() * rows
+    sizes_own = jax.lax.dynamic_slice_in_dim(
+        jnp.pad(sizes, ((0, 0), (0, rows * shards.devices - plan.n_query)), constant_values=1.0), first_row, rows, 1)
+
+    def merged(part, after=None):
+        fn = layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, part)
+        if not shards.sharded:
+            return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2)[0]
+        # one of q, k, v at a time: each projected after the previous one is summed
+        xs = x if after is None else jax.lax.optimization_barrier((x, after))[0]
+        vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
+                                 dep=xs if after is None else after)[0]
+        sums = shards.ring_sum_scatter(lambda block: merge_lib.block_sums(vals, group - block * rows, rows))
+        return (sums / sizes_own[..., None, None]).astype(vals.dtype)
+
+    qm = merged("q")  # [B, rows, H, D]: this device's merged rows
+    km = merged("k", qm)
+    vm = merged("v", km)
+    # Over devices, the keys are every device's merged rows, passed around (those the
+    # layer does not keep masked out: each device holds two devices' rows at a time
+    # instead of every kept row)
+    ring = shards.sharded
+    own_rows = first_row + jnp.arange(rows)
 
     if plan.kv_mode == "all":
-        kk, vv, g, valid = km, vm, sizes, None
+        kk, vv, g, valid = km, vm, (sizes_own if ring else sizes), None
+        if ring:
+            valid = jnp.broadcast_to(own_rows < plan.n_query, (b, rows))
     else:
         fixed = fixed_kv_index(cc, layer, geom.frames, geom.h, geom.w, geom.num_special)
         kv_key = None if plan.match_key is None else f"{plan.match_key}|{plan.tile}"
@@ -213,54 +274,71 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             if kv_key is not None:
                 state["kv"] = {**state["kv"], kv_key: (idx, ok)}
         sel = jnp.concatenate([jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size)), idx], axis=1)
-        kk, vv = _take_rows(km, sel), _take_rows(vm, sel)
-        g = jnp.take_along_axis(sizes, sel, axis=1, mode="promise_in_bounds")
         valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+        if ring:  # this device's merged rows, the kept ones marked (the slots are distinct rows)
+            rel = sel - first_row  # (negative ones would wrap around in a scatter)
+            rel = jnp.where(valid & (rel >= 0) & (rel < rows), rel, rows)
+            valid = jnp.zeros((b, rows), bool).at[jnp.arange(b)[:, None], rel].set(True, mode="drop")
+            kk, vv, g = km, vm, sizes_own
+        else:
+            kk, vv = chunks.take_along(km, sel, axis=1), chunks.take_along(vm, sel, axis=1)
+            g = jnp.take_along_axis(sizes, sel, axis=1, mode="promise_in_bounds")
 
+    dup = None
     if plan.n_dup:
-        # The authors' artefact: the protected tokens once more, un-merged, size 1.
+        # The authors' artefact: the protected dst tokens once more, un-merged, size 1.
         ppos = state["protected_pos"]
-        dk, dv = _rows_kv(p_block, x, ppos, pos, heads, dtype)
-        kk = jnp.concatenate([kk, dk], axis=1)
-        vv = jnp.concatenate([vv, dv], axis=1)
-        g = jnp.concatenate([g, jnp.ones(ppos.shape, jnp.float32)], axis=1)
-        dup_ok = jnp.ones(ppos.shape, bool)
+        dk, dv = _rows_kv(p_block, x, ppos, pos, heads, dtype, shards, L)
+        # only protected dst come twice: the authors drop protected src from both lists
+        dup_ok = jnp.take(jnp.asarray(part.is_dst), ppos, mode="clip")
         if plan.kv_mode == "select" and not (cc.kv_protect_saliency and cc.protect == "saliency"):
             keep = jnp.asarray(kv_static_keep(geom.frames, geom.h, geom.w, geom.num_special, plan.tile,
                                               cc.phase_shift, cc.anchor))
-            dup_ok = jnp.take(keep, ppos, mode="clip")
-        if valid is None:
-            valid = jnp.ones(g.shape[:1] + (g.shape[1] - ppos.shape[1],), bool)
-        valid = jnp.concatenate([valid, dup_ok], axis=1)
+            dup_ok = dup_ok & jnp.take(keep, ppos, mode="clip")
+        dup = (dk, dv, jnp.ones(ppos.shape, jnp.float32), dup_ok)
+        if not ring:
+            kk = jnp.concatenate([kk, dk], axis=1)
+            vv = jnp.concatenate([vv, dv], axis=1)
+            g = jnp.concatenate([g, dup[2]], axis=1)
+            if valid is None:
+                valid = jnp.ones(g.shape[:1] + (g.shape[1] - ppos.shape[1],), bool)
+            valid = jnp.concatenate([valid, dup_ok], axis=1)
 
-    log_g = None
-    if plan.size_column:
-        if not cc.size_bias:
-            g = jnp.ones_like(g)
-        log_g = log_sizes(g, valid if plan.masked else None)
-    out = attention(qm, kk, vv, log_g)
+    def bias(g, valid, masked):
+        if not plan.size_column and not masked:
+            return None
+        return log_sizes(g if cc.size_bias and plan.size_column else jnp.ones_like(g), valid if masked else None)
+
+    if ring:
+        # (the padding rows are always masked; log 1 = 0 keeps a layer without the size
+        # column exact)
+        extra = () if dup is None else ((dup[0], dup[1], bias(dup[2], dup[3], plan.masked)),)
+        log_g = bias(g, valid, True)
+        out = ring_attention(qm, kk, vv, log_g, shards, extra)
+    else:
+        log_g = bias(g, valid, plan.masked) if plan.size_column else None
+        out = attention(qm, kk, vv, log_g)
     _log(layer=layer, kind="merge", queries=qm.shape[1], kv=kk.shape[1], head_dim=_folded_dim(d, log_g, cc))
-    # the output projection on the N_m merged rows, then every token takes its group's row
+    # the output projection on the merged rows, then every token takes its group's row
     proj = p_block["attn"]["proj"]
-    out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, plan.n_query, c),),
+    out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, rows, c),),
                             bytes_per_row=b * c * 4 * 4)
-    x = layers.finish_block(p_block, x, lambda gc: merge_lib.unmerge(out, {"group": gc}), (match["group"],),
-                            dtype=dtype)
+    if not shards.sharded:
+        x = layers.finish_block(p_block, x, lambda gc: merge_lib.unmerge(out, {"group": gc}), (group,), dtype=dtype)
+    else:  # the merged rows travel around the devices, each token taking its group's
+        x = layers.finish_block(p_block, x, lambda rc: rc, (shards.ring_take(out, group),), dtype=dtype)
     return x, state
 
 
-def _rows_kv(p_block, x: jax.Array, idx: jax.Array, pos: layers.RopeTables, heads: int, dtype
-             ) -> tuple[jax.Array, jax.Array]:
-    """K and V [B, M, H, d] of the tokens idx [B, M] of x [B, N, C] (their norm1,
-    projection, qk-norm and RoPE at their own positions)."""
-    rows = _take_rows(x, idx)
-    tables = layers.RopeTables(*(jnp.take(t[0], idx, axis=0, mode="clip") for t in (pos.cos, pos.sin)))
+def _rows_kv(p_block, x: jax.Array, idx: jax.Array, pos: layers.RopeTables, heads: int, dtype,
+             shards: FrameShards, per_frame: int) -> tuple[jax.Array, jax.Array]:
+    """K and V [B, M, H, d] of the tokens idx [B, M] (global positions) of the sequence
+    whose rows x [B, N, C] this device holds (their norm1, projection, qk-norm and RoPE
+    at their own positions; `pos` the tables of x's tokens, which repeat every frame)."""
+    rows = shards.take_rows(x, idx, per_frame)
+    local = idx % per_frame
+    tables = layers.RopeTables(*(jnp.take(t[0], local, axis=0, mode="clip") for t in (pos.cos, pos.sin)))
     return layers.normed_qkv(p_block, rows, heads, tables, dtype=dtype, parts="kv")
-
-
-def _take_rows(x: jax.Array, idx: jax.Array) -> jax.Array:
-    """x [B, N, ...], idx [B, M] -> [B, M, ...]."""
-    return chunks.take_along(x, idx, axis=1)
 
 
 def _folded_dim(d: int, log_g, cc) -> int:

@@ -19,7 +19,6 @@ See docs/method.md for every choice and the deviations from the authors' code.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -100,8 +99,9 @@ class CompressionConfig:
       alpha              protected fraction.
       size_bias          log(group size) added to the attention logits (proportional
                          attention), folded into an extra Q/K column.
-      duplicate_protected  reproduce the authors' artefact of the protected tokens
-                         appearing twice among the keys/values (off: no duplicate).
+      duplicate_protected  reproduce the authors' artefact of the protected dst tokens
+                         appearing twice among the keys/values (protected src appear
+                         once, as the authors'; off: no duplicate).
       dst_seed           seed of the fixed per-cell dst choice; -1 = top-left of every cell.
 
     K/V downsampling (axis 2)

@@ -26,29 +26,29 @@ def compact(valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
     return order, jnp.take_along_axis(valid, order, axis=-1, mode="promise_in_bounds")
 
 
-def dynamic_slots(plan: LayerPlan, part: Partition, cc, match: dict[str, jax.Array] | None,
-                  protected: jax.Array | None, ns: int, h: int, w: int) -> tuple[jax.Array, jax.Array]:
+def dynamic_slots(plan: LayerPlan, part: Partition, comp, match: dict[str, jax.Array] | None,
+                  protected: jax.Array | None, num_special: int, h: int, w: int) -> tuple[jax.Array, jax.Array]:
     """The data-dependent K/V slots of a layer: (indices into the query layout [B, n_dyn],
     valid [B, n_dyn]).
 
     protected: [B, N] bool Psi-protection flags (only read when the plan keeps protected
     tokens in K/V)."""
-    keep = jnp.asarray(kv_static_keep(plan.frames, h, w, ns, plan.tile, cc.phase_shift, cc.anchor))
-    psi = cc.kv_protect_saliency and protected is not None
+    keep = jnp.asarray(kv_static_keep(plan.frames, h, w, num_special, plan.tile, comp.phase_shift, comp.anchor))
+    keep_protected = comp.kv_protect_saliency and protected is not None
     if plan.kind == "kv":
         # Identity layout: candidates are the positions not kept statically.
-        cand = np.flatnonzero(~np.asarray(kv_static_keep(plan.frames, h, w, ns, plan.tile, cc.phase_shift,
-                                                         cc.anchor)))
+        cand = np.flatnonzero(~np.asarray(kv_static_keep(plan.frames, h, w, num_special, plan.tile, comp.phase_shift,
+                                                         comp.anchor)))
         valid = jnp.take(protected, cand, axis=1, mode="clip")
         idx, ok = compact(valid, plan.n_dyn)
         return jnp.take(jnp.asarray(cand, jnp.int32), idx, mode="clip"), ok
     unm_pos = match["unm_pos"]  # [B, U]
     valid = jnp.take(keep, unm_pos, mode="clip")
-    if psi:
+    if keep_protected:
         valid = valid | jnp.take_along_axis(protected, unm_pos, axis=1, mode="promise_in_bounds")
     cand = plan.n_dst + jnp.broadcast_to(jnp.arange(plan.n_unm, dtype=jnp.int32), unm_pos.shape)
-    if psi:
-        keep_np = np.asarray(kv_static_keep(plan.frames, h, w, ns, plan.tile, cc.phase_shift, cc.anchor))
+    if keep_protected:
+        keep_np = np.asarray(kv_static_keep(plan.frames, h, w, num_special, plan.tile, comp.phase_shift, comp.anchor))
         dst_not_kept = np.flatnonzero(~keep_np[part.dst_pos])  # indices into the dst part
         valid = jnp.concatenate([jnp.take(protected, part.dst_pos[dst_not_kept], axis=1, mode="clip"), valid], axis=1)
         cand = jnp.concatenate([jnp.broadcast_to(jnp.asarray(dst_not_kept, jnp.int32),

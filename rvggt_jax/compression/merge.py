@@ -12,11 +12,14 @@ every token its group's row.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import chunks
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.compression.partition import Partition
 from rvggt_jax.compression.plan import LayerPlan
 
@@ -35,7 +38,8 @@ SIMILARITY_BLOCK_BYTES = 8 * 2**20
 
 
 def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chunk: int = 0,
-               dtype=None, transform=None) -> tuple[jax.Array, jax.Array]:
+               dtype=None, transform=None, shards: FrameShards | None = None, per_frame: int = 0
+               ) -> tuple[jax.Array, jax.Array]:
     """Cosine matching of src to dst tokens, in blocks.
 
     metric [B, N, C] (features, not yet normalised); src_idx [G, Na] and dst_idx [G, Nb]
@@ -45,7 +49,13 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     float32, stored in `dtype`, default the metric's); similarities accumulate in float32,
     at most SIMILARITY_BLOCK_BYTES of them (and at most `chunk` src rows, when > 0) at a
     time: the [Na, Nb] similarities never exist.
-    `transform` (per token, e.g. the block's norm1) is applied to gathered rows first."""
+    `transform` (per token, e.g. the block's norm1) is applied to gathered rows first.
+
+    Split over devices (`shards`; metric holds this device's tokens, `per_frame` per
+    frame): every device gets every dst's unit row (G = 1) and matches its own src, whose
+    results are gathered back into the global order; with G > 1 each group (a frame)
+    lives on one device and is matched there."""
+    sharded = shards is not None and shards.sharded
     dtype = metric.dtype if dtype is None else dtype
 
     def _unit(rows, dtype):
@@ -53,29 +63,70 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     b = metric.shape[0]
     g, na = src_idx.shape
     nb = dst_idx.shape[1]
+    order = None
+    if sharded and g == 1:
+        table, order = shards.local_positions(src_idx[0], per_frame)
+        dst_table, dst_order = shards.local_positions(dst_idx[0], per_frame)
+        # the global rank (in dst_idx) of every slot of every device's dst, -1 for padding
+        ranks = np.full(dst_table.size, -1, np.int64)
+        ranks[dst_order] = np.arange(nb)
+        dst_rank = shards.per_device(ranks.reshape(dst_table.shape).astype(np.float32))
+        dst_idx = shards.per_device(dst_table)[None]
+        src_idx = shards.per_device(table)[None]
+    elif sharded:
+        src_table, dst_table, order = _group_tables(shards, src_idx, dst_idx, per_frame)
+        src_idx, dst_idx = shards.per_device(src_table), shards.per_device(dst_table)
     src_idx, dst_idx = jnp.asarray(src_idx, jnp.int32), jnp.asarray(dst_idx, jnp.int32)
+    na = src_idx.shape[1]
 
-    def best(a, d):
+    def gathered(score, arg):
+        if order is None:
+            return score, arg
+        return shards.gather_results(score, order, 1), shards.gather_results(arg, order, 1)
+
+    def best(a, d, rank=None):
         sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
+        if rank is None:
+            rank = jnp.arange(sims.shape[-1], dtype=jnp.float32)
+        else:  # a device's dst block: ranks of the whole dst list, padding slots out
+            sims = jnp.where(rank >= 0, sims, -jnp.inf)
         top = jnp.max(sims, axis=-1)
         # argmax as the first index reaching the max: two plain reductions, 3x faster on
         # XLA:CPU than its argmax (a variadic reduce); equal, ties included (a row of
         # NaN features gets the last index).
         # (indices as float32: exact below 2^24, and a float min is the faster reduction)
-        first = jnp.min(jnp.where(sims >= top[..., None], jnp.arange(sims.shape[-1], dtype=jnp.float32),
-                                  np.float32(sims.shape[-1])), axis=-1)
-        return top, jnp.minimum(first, sims.shape[-1] - 1).astype(jnp.int32)
+        first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
+        return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
 
     # the unit src rows once (a [G*Na, C] copy in the compute dtype: gathering them block
     # by block inside the loop is 2x slower), then blocks of src rows against the dst
     src = _unit(chunks.take(metric, src_idx.reshape(-1), axis=1), dtype)
     if g == 1:
-        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C]
-        rows = chunks.row_chunks(na, b * nb * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
+        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C] (a device's: [B, Nb', C])
+        rows = chunks.row_chunks(na, b * dst.shape[1] * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
         rows = min(rows, chunk) if chunk > 0 else rows
-        score, arg = chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows)
+        if not sharded:
+            score, arg = chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows)
+            return score[:, None], arg[:, None]
+
+        # over devices: this device's src against every device's dst block, the blocks
+        # passed around the devices; the best so far kept (ties: the lowest rank, as one
+        # device's first-index rule)
+        def against(block, rank):
+            return chunks.map_tokens(lambda a: best(a, block, rank), (src,), axis=1, rows=rows)
+
+        def step(_, carry):
+            (top, arg), block = carry
+            block = shards.ring_shift(block)
+            t2, a2 = against(*block)
+            better = (t2 > top) | ((t2 == top) & (a2 < arg))
+            return (jnp.where(better, t2, top), jnp.where(better, a2, arg)), block
+
+        (score, arg), _ = jax.lax.fori_loop(1, shards.devices, step, (against(dst, dst_rank), (dst, dst_rank)))
+        score, arg = gathered(score, arg)
         return score[:, None], arg[:, None]
 
+    g = src_idx.shape[0]
     frames = chunks.row_chunks(g, b * na * nb * 4, SIMILARITY_BLOCK_BYTES, multiple=1)
 
     def per_frames(a, di):  # [B, F, Na, C], [F, Nb] -> [B, F, Na] each
@@ -84,7 +135,29 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
         return best(a, d)
 
     src = src.reshape(b, g, na, -1)
-    return chunks.map_tokens(per_frames, (src, dst_idx[None]), axis=1, rows=frames, dep=metric)
+    return gathered(*chunks.map_tokens(per_frames, (src, dst_idx[None]), axis=1, rows=frames, dep=metric))
+
+
+def _group_tables(shards: FrameShards, src_idx: np.ndarray, dst_idx: np.ndarray, per_frame: int):
+    """The groups (frames) of each device for matching within groups: (src [devices,
+    G_max, Na] and dst [devices, G_max, Nb] local token indices, order [G] of the groups
+    in the devices' concatenated results). Padding entries point at local row 0 (their
+    results are dropped)."""
+    rows = shards.local * per_frame
+    owner = src_idx[:, 0] // rows
+    if not np.array_equal(owner, dst_idx[:, 0] // rows) or np.any(src_idx // rows != owner[:, None]):
+        raise ValueError("matching within groups needs each group's tokens on one device")
+    counts = np.bincount(owner, minlength=shards.devices)
+    g_max = max(1, int(counts.max()))
+    src_t = np.zeros((shards.devices, g_max, src_idx.shape[1]), np.int64)
+    dst_t = np.zeros((shards.devices, g_max, dst_idx.shape[1]), np.int64)
+    order = np.empty(src_idx.shape[0], np.int64)
+    for d in range(shards.devices):
+        mine = np.flatnonzero(owner == d)
+        src_t[d, :mine.size] = src_idx[mine] - d * rows
+        dst_t[d, :mine.size] = dst_idx[mine] - d * rows
+        order[mine] = d * g_max + np.arange(mine.size)
+    return src_t, dst_t, order
 
 
 def _inverse_permutation(order: jax.Array) -> jax.Array:
@@ -95,16 +168,20 @@ def _inverse_permutation(order: jax.Array) -> jax.Array:
 
 
 def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Partition, plan: LayerPlan,
-                  chunk: int, dtype=None, transform=None) -> dict[str, jax.Array]:
+                  chunk: int, dtype=None, transform=None, shards: FrameShards | None = None,
+                  per_frame: int = 0) -> dict[str, jax.Array]:
     """metric [B, N, C] (similarity features), protected_src [B, N_src] bool or None ->
     the match of this layer's plan (see the module docstring). The unit rows are
     normalised in float32 and stored in `dtype` (default: the metric's) block by block;
-    the cosine similarities accumulate in float32 (`best_match`)."""
+    the cosine similarities accumulate in float32 (`best_match`). Split over devices
+    (`shards`): metric holds this device's tokens; the match is sequence-wide, the same
+    on every device."""
+    found = dict(chunk=chunk, dtype=dtype, transform=transform, shards=shards, per_frame=per_frame)
     b = metric.shape[0]
     n_dst, n_src, r, U = plan.n_dst, plan.n_src, plan.r, plan.n_unm
 
     if plan.scope == "sequence":
-        score, arg = best_match(metric, part.src_pos[None], part.dst_pos[None], chunk, dtype, transform)
+        score, arg = best_match(metric, part.src_pos[None], part.dst_pos[None], **found)
         score, arg = score[:, 0], arg[:, 0]  # [B, N_src], arg indexes dst_pos
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
@@ -118,7 +195,7 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Part
         r_f = plan.r_frame
         u_f = n_src_f - r_f
         # [B, S-1, n_src_f], arg local to the frame's dst
-        score, arg = best_match(metric, part.src_pos_f, part.dst_pos[part.dst_rank_f], chunk, dtype, transform)
+        score, arg = best_match(metric, part.src_pos_f, part.dst_pos[part.dst_rank_f], **found)
         arg = jnp.take(jnp.asarray(part.dst_rank_f, jnp.int32), arg + jnp.arange(s1, dtype=jnp.int32)[:, None]
                        * part.dst_rank_f.shape[1], mode="clip")
         if protected_src is not None:
@@ -170,24 +247,30 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
         sums = add(sums, 0, n, group, *inputs)
     else:
         sums = chunks.fold_tokens(add, sums, (group, *inputs), n, 1, rows)
-    sizes = match["sizes"].reshape(b * n_query)
-    return tuple((a / sizes.reshape((-1,) + (1,) * (a.ndim - 1))).reshape((b, n_query) + o.shape[2:]).astype(o.dtype)
-                 for a, o in zip(sums, spec))
+    sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
+    sizes = match["sizes"]
+    return tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype) for a, o in zip(sums, spec))
+
+
+def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
+    """Float32 sums [B, rows, ...] of values [B, N, ...] over the groups group [B, N]
+    (tokens whose group is outside [0, rows) are left out): one block of the group sums
+    (over devices, the block `ring_sum_scatter` is making). Token chunks are cast to
+    float32 and added one at a time: a float32 copy of all the values would be a
+    loop-invariant XLA hoists out of the ring."""
+    b, n = values.shape[:2]
+    offsets = (jnp.arange(b, dtype=jnp.int32) * rows)[:, None]
+
+    def add(acc, start, size, gc, vc):
+        inside = (gc >= 0) & (gc < rows)
+        ids = jnp.where(inside, gc + offsets, b * rows).reshape(-1)
+        return acc.at[ids].add(vc.reshape((-1,) + vc.shape[2:]).astype(jnp.float32), mode="drop")
+
+    sums = chunks.zeros_after((b * rows,) + values.shape[2:], jnp.float32, values)
+    chunk = chunks.row_chunks(n, b * math.prod(values.shape[2:]) * 4)
+    return chunks.fold_tokens(add, sums, (group, values), n, 1, chunk).reshape((b, rows) + values.shape[2:])
 
 
 def unmerge(y: jax.Array, match: dict[str, jax.Array]) -> jax.Array:
     """y [B, N_m, F] -> [B, N, F]: every token takes its group's row."""
     return chunks.take_along(y, match["group"], axis=1)
-
-
-def identity_match(n: int, batch: int) -> dict[str, jax.Array]:
-    """The match of r = 0 (every token its own group), for tests."""
-    return {"group": jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (batch, n)),
-            "sizes": jnp.ones((batch, n), jnp.float32),
-            "unm_pos": jnp.zeros((batch, 0), jnp.int32)}
-
-
-def static_protected_flags(positions: np.ndarray, n: int) -> np.ndarray:
-    flags = np.zeros(n, bool)
-    flags[positions] = True
-    return flags

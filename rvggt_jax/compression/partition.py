@@ -1,9 +1,9 @@
 """Static index builders (numpy, computed at trace time from shapes and configuration).
 
 Token order of the global blocks: the sequence of one batch element holds N = S*L
-tokens, L = ns + h*w per frame: `ns` special tokens (camera, registers), then the h*w
+tokens, L = num_special + h*w per frame: `num_special` tokens (camera, registers), then the h*w
 patches row-major. Position n -> frame n // L, local index n % L; patch (i, j) of a frame
-sits at local index ns + i*w + j.
+sits at local index num_special + i*w + j.
 
 Everything here is a pure function of Python ints, cached, and returns read-only numpy
 arrays, so the compressed block never branches on data and every shape is static.
@@ -34,12 +34,12 @@ class TokenLayout(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def token_layout(frames: int, h: int, w: int, ns: int) -> TokenLayout:
-    L = ns + h * w
+def token_layout(frames: int, h: int, w: int, num_special: int) -> TokenLayout:
+    L = num_special + h * w
     n = np.arange(frames * L)
     frame, local = n // L, n % L
-    special = local < ns
-    patch = np.where(special, -1, local - ns)
+    special = local < num_special
+    patch = np.where(special, -1, local - num_special)
     row = np.where(special, -1, patch // w)
     col = np.where(special, -1, patch % w)
     return TokenLayout(*(_ro(a) for a in (frame, local, special, row, col)))
@@ -92,15 +92,15 @@ class Partition(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def partition(frames: int, h: int, w: int, ns: int, seed: int) -> Partition:
-    L = ns + h * w
+def partition(frames: int, h: int, w: int, num_special: int, seed: int) -> Partition:
+    L = num_special + h * w
     N = frames * L
     is_dst = np.zeros(N, bool)
     is_dst[:L] = True
     for f in range(1, frames):
         base = f * L
-        is_dst[base: base + ns] = True
-        is_dst[base + ns + dst_cells(h, w, f, seed)] = True
+        is_dst[base: base + num_special] = True
+        is_dst[base + num_special + dst_cells(h, w, f, seed)] = True
     dst_pos = np.flatnonzero(is_dst)
     src_pos = np.flatnonzero(~is_dst)
     dst_rank = np.full(N, -1, np.int64)
@@ -112,7 +112,7 @@ def partition(frames: int, h: int, w: int, ns: int, seed: int) -> Partition:
         dst_pos_f = dst_pos[L:].reshape(frames - 1, -1)
     else:
         src_pos_f = np.zeros((0, h * w - num_cells(h, w)), np.int64)
-        dst_pos_f = np.zeros((0, ns + num_cells(h, w)), np.int64)
+        dst_pos_f = np.zeros((0, num_special + num_cells(h, w)), np.int64)
     dst_first_src = np.concatenate([dst_pos, src_pos])
     perm_to_pos = np.empty(N, np.int64)
     perm_to_pos[dst_first_src] = np.arange(N)
@@ -146,11 +146,11 @@ def grid_keep(row: np.ndarray, col: np.ndarray, frame: np.ndarray, h: int, w: in
 
 
 @functools.lru_cache(maxsize=256)
-def kv_static_keep(frames: int, h: int, w: int, ns: int, tile: tuple[int, int],
+def kv_static_keep(frames: int, h: int, w: int, num_special: int, tile: tuple[int, int],
                    phase_shift: bool, anchor: bool) -> np.ndarray:
     """[N] bool: the positions kept as K/V for static reasons (camera/register tokens,
     frame 0 when anchored, patches on the phase-shifted sub-grid)."""
-    lay = token_layout(frames, h, w, ns)
+    lay = token_layout(frames, h, w, num_special)
     keep = lay.special | grid_keep(lay.row, lay.col, lay.frame, h, w, tile, phase_shift)
     if anchor:
         keep = keep | (lay.frame == 0)

@@ -6,7 +6,8 @@ Query layout of a merging layer: [dst (N_dst, static order) ; unmerged src (U,
 data-dependent)], N_m = N_dst + U = N - r. K/V slots: the dst kept for static reasons
 (`kv_fixed`, static indices), then `n_dyn` slots compacted from the data-dependent
 candidates (unmerged src on the sub-grid; Psi-protected tokens in the paper variant),
-then `n_dup` duplicates of the protected tokens (authors' artefact, off by default).
+then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
+default; a slot whose protected token is a src stays empty).
 Slots left empty are masked through the size column (g = 0 -> a large negative finite
 logit).
 """
@@ -23,7 +24,6 @@ from rvggt_jax.compression.config import CompressionConfig
 from rvggt_jax.compression.partition import (
     _ro,
     kv_static_keep,
-    num_cells,
     partition,
     saliency_protect_count,
     stride_protected,
@@ -46,9 +46,10 @@ class LayerPlan:
     kv_mode: str  # "all" (every query token is a key) | "select"
     n_fixed: int  # static K/V slots (always filled)
     n_dyn: int  # data-dependent K/V slots (bound)
-    n_dup: int  # duplicated protected tokens among the keys
+    n_dup: int  # K/V slots for duplicated protected dst (a bound: a protected src leaves its slot empty)
     n_kv: int  # K/V slots in total
     expected_dyn: float  # expected filled dynamic slots (src survival independent of position)
+    expected_dup: float  # expected filled duplicate slots
     masked: bool  # some K/V slot may be empty
     size_column: bool  # the attention gets the extra Q/K column
     match: str  # "none" | "compute" | "reuse"
@@ -59,101 +60,112 @@ class LayerPlan:
     match_pairs: int  # src x dst similarity pairs evaluated when match == "compute"
     protect_per_frame: int  # kp (saliency protection)
 
-    @property
-    def kv_filled_max(self) -> int:
-        """Slots that can be filled at most (the static ones plus every dynamic one)."""
-        return self.n_kv
 
-
-def _merge_counts(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, ns: int):
+def _merge_counts(comp: CompressionConfig, layer: int, frames: int, h: int, w: int, num_special: int):
     """(r, r_frame, n_dst, n_src, protected-src bound) of a layer."""
-    L = ns + h * w
+    L = num_special + h * w
     N = frames * L
-    part = partition(frames, h, w, ns, cc.dst_seed)
+    part = partition(frames, h, w, num_special, comp.dst_seed)
     n_dst, n_src = part.dst_pos.size, part.src_pos.size
-    rho = cc.layer_merge_ratio(layer)
-    kp = saliency_protect_count(h, w, cc.alpha) if cc.protect == "saliency" else 0
-    if cc.match_scope == "sequence":
-        if cc.protect == "stride":
-            p_src = int((~part.is_dst[stride_protected(N, cc.alpha)]).sum())
+    rho = comp.layer_merge_ratio(layer)
+    protected_per_frame = saliency_protect_count(h, w, comp.alpha) if comp.protect == "saliency" else 0
+    if comp.match_scope == "sequence":
+        if comp.protect == "stride":
+            p_src = int((~part.is_dst[stride_protected(N, comp.alpha)]).sum())
         else:
-            p_src = (frames - 1) * kp
+            p_src = (frames - 1) * protected_per_frame
         r = max(0, min(int(N * rho), n_src - p_src))
         return r, 0, n_dst, n_src
     n_src_f = part.src_pos_f.shape[1]
-    if cc.protect == "stride" and frames > 1:
+    if comp.protect == "stride" and frames > 1:
         prot = np.zeros(N, bool)
-        prot[stride_protected(N, cc.alpha)] = True
-        kp_f = int(prot[part.src_pos_f].sum(axis=1).max())
+        prot[stride_protected(N, comp.alpha)] = True
+        protected_src_per_frame = int(prot[part.src_pos_f].sum(axis=1).max())
     else:
-        kp_f = kp
-    r_f = max(0, min(int(L * rho), n_src_f - kp_f)) if frames > 1 else 0
+        protected_src_per_frame = protected_per_frame
+    r_f = max(0, min(int(L * rho), n_src_f - protected_src_per_frame)) if frames > 1 else 0
     return (frames - 1) * r_f, r_f, n_dst, n_src
 
 
-def _protected_count(cc: CompressionConfig, frames: int, h: int, w: int, ns: int) -> int:
+def _protected_count(comp: CompressionConfig, frames: int, h: int, w: int, num_special: int) -> int:
     """Upper bound on protected tokens (exact for stride protection)."""
-    if cc.protect == "saliency":
-        return (frames - 1) * saliency_protect_count(h, w, cc.alpha)
-    if cc.protect == "stride":
-        return int(stride_protected(frames * (ns + h * w), cc.alpha).size)
+    if comp.protect == "saliency":
+        return (frames - 1) * saliency_protect_count(h, w, comp.alpha)
+    if comp.protect == "stride":
+        return int(stride_protected(frames * (num_special + h * w), comp.alpha).size)
     return 0
 
 
+def _expected_duplicates(comp: CompressionConfig, part, keep: np.ndarray | None, frames: int, h: int, w: int,
+                         num_special: int) -> float:
+    """Expected duplicated protected tokens: those that are dst (and kept as K/V when
+    `keep` [N] masks the duplicates). Exact for stride protection; for saliency, the
+    top patches of frames >= 1 are taken to fall anywhere in their frame."""
+    ok = part.is_dst if keep is None else part.is_dst & keep
+    if comp.protect == "stride":
+        return float(ok[stride_protected(frames * (num_special + h * w), comp.alpha)].sum())
+    L = num_special + h * w
+    pos = np.arange(L, frames * L)
+    later_patches = pos[pos % L >= num_special]  # where saliency protection can fall
+    if not later_patches.size:
+        return 0.0
+    return _protected_count(comp, frames, h, w, num_special) * float(ok[later_patches].mean())
+
+
 @functools.lru_cache(maxsize=4096)
-def layer_plan(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, ns: int) -> LayerPlan:
-    L = ns + h * w
+def layer_plan(comp: CompressionConfig, layer: int, frames: int, h: int, w: int, num_special: int) -> LayerPlan:
+    L = num_special + h * w
     N = frames * L
-    kind = cc.layer_kind(layer)
-    tile = cc.layer_tile(layer)
-    base = dict(layer=layer, frames=frames, tokens=N, per_frame=L, tile=tile, scope=cc.match_scope,
-                metric=cc.layer_metric(layer), protect_per_frame=0)
+    kind = comp.layer_kind(layer)
+    tile = comp.layer_tile(layer)
+    base = dict(layer=layer, frames=frames, tokens=N, per_frame=L, tile=tile, scope=comp.match_scope,
+                metric=comp.layer_metric(layer), protect_per_frame=0)
     if kind in ("dense", "frame"):
         return LayerPlan(kind=kind, r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all",
                          n_fixed=L if kind == "frame" else N, n_dyn=0, n_dup=0,
-                         n_kv=L if kind == "frame" else N, expected_dyn=0.0, masked=False,
+                         n_kv=L if kind == "frame" else N, expected_dyn=0.0, expected_dup=0.0, masked=False,
                          size_column=False, match="none", match_key=None, r_frame=0, match_pairs=0, **base)
 
-    r, r_f, n_dst, n_src = _merge_counts(cc, layer, frames, h, w, ns)
-    psi_kv = cc.kv_protect_saliency and cc.protect == "saliency" and tile != (1, 1)
-    p_max = _protected_count(cc, frames, h, w, ns)
-    kp = saliency_protect_count(h, w, cc.alpha) if cc.protect == "saliency" else 0
-    base["protect_per_frame"] = kp
-    keep = kv_static_keep(frames, h, w, ns, tile, cc.phase_shift, cc.anchor)
+    r, r_f, n_dst, n_src = _merge_counts(comp, layer, frames, h, w, num_special)
+    kv_keeps_protected = comp.kv_protect_saliency and comp.protect == "saliency" and tile != (1, 1)
+    p_max = _protected_count(comp, frames, h, w, num_special)
+    protected_per_frame = saliency_protect_count(h, w, comp.alpha) if comp.protect == "saliency" else 0
+    base["protect_per_frame"] = protected_per_frame
+    keep = kv_static_keep(frames, h, w, num_special, tile, comp.phase_shift, comp.anchor)
 
     if r == 0:
         # No merging: queries are the tokens in their own order.
         if tile == (1, 1):
             return LayerPlan(kind="dense", r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all",
-                             n_fixed=N, n_dyn=0, n_dup=0, n_kv=N, expected_dyn=0.0, masked=False,
-                             size_column=False, match="none", match_key=None, r_frame=0, match_pairs=0,
-                             **base)
+                             n_fixed=N, n_dyn=0, n_dup=0, n_kv=N, expected_dyn=0.0, expected_dup=0.0,
+                             masked=False, size_column=False, match="none", match_key=None, r_frame=0,
+                             match_pairs=0, **base)
         n_fixed = int(keep.sum())
-        n_dyn = min(N - n_fixed, p_max) if psi_kv else 0
+        n_dyn = min(N - n_fixed, p_max) if kv_keeps_protected else 0
         # Expected protected non-kept patches: protection independent of the grid.
-        exp_dyn = p_max * (1.0 - n_fixed / N) if psi_kv else 0.0
+        exp_dyn = p_max * (1.0 - n_fixed / N) if kv_keeps_protected else 0.0
         return LayerPlan(kind="kv", r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="select",
                          n_fixed=n_fixed, n_dyn=n_dyn, n_dup=0, n_kv=n_fixed + n_dyn, expected_dyn=exp_dyn,
-                         masked=n_dyn > 0, size_column=n_dyn > 0, match="none", match_key=None, r_frame=0,
-                         match_pairs=0, **base)
+                         expected_dup=0.0, masked=n_dyn > 0, size_column=n_dyn > 0, match="none",
+                         match_key=None, r_frame=0, match_pairs=0, **base)
 
-    part = partition(frames, h, w, ns, cc.dst_seed)
+    part = partition(frames, h, w, num_special, comp.dst_seed)
     U = n_src - r
     n_query = n_dst + U
-    key = cc.cache_key(layer)
+    key = comp.cache_key(layer)
     match = "compute"
     if key is not None:
         for prev in range(layer):
-            if (cc.layer_kind(prev) == "compressed" and cc.cache_key(prev) == key
-                    and _merge_counts(cc, prev, frames, h, w, ns)[0] > 0):
+            if (comp.layer_kind(prev) == "compressed" and comp.cache_key(prev) == key
+                    and _merge_counts(comp, prev, frames, h, w, num_special)[0] > 0):
                 match = "reuse"
                 break
-    if cc.match_scope == "sequence":
+    if comp.match_scope == "sequence":
         pairs = n_src * n_dst
     else:
         pairs = (frames - 1) * part.src_pos_f.shape[1] * part.dst_rank_f.shape[1]
 
-    n_dup = p_max if cc.duplicate_protected else 0
+    n_dup = p_max if comp.duplicate_protected else 0
     if tile == (1, 1):
         kv_mode, n_fixed, n_dyn, exp_dyn = "all", n_query, 0, 0.0
         dup_masked = False
@@ -163,26 +175,31 @@ def layer_plan(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, n
         e_src = int(keep[part.src_pos].sum())
         n_dyn = min(U, e_src)
         exp_dyn = U * e_src / max(n_src, 1)
-        if psi_kv:
+        if kv_keeps_protected:
             pool = U + (n_dst - n_fixed)
             n_dyn = min(pool, n_dyn + p_max)
             exp_dyn = min(float(n_dyn), exp_dyn + p_max * (1.0 - (n_fixed + e_src) / max(n_dst + n_src, 1)))
-        dup_masked = not psi_kv
-    masked = n_dyn > 0 or (n_dup > 0 and dup_masked)
+        dup_masked = not kv_keeps_protected
+    exp_dup = 0.0
+    if n_dup:
+        exp_dup = _expected_duplicates(comp, part, keep if dup_masked else None, frames, h, w, num_special)
+    # a duplicate slot is empty when its protected token is a src (or off the K/V grid)
+    masked = n_dyn > 0 or n_dup > 0
     return LayerPlan(kind="merge", r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query, kv_mode=kv_mode,
                      n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
-                     expected_dyn=exp_dyn, masked=masked, size_column=masked or cc.size_bias,
+                     expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
+                     size_column=masked or comp.size_bias,
                      match=match, match_key=key, r_frame=r_f, match_pairs=pairs, **base)
 
 
 @functools.lru_cache(maxsize=1024)
-def fixed_kv_index(cc: CompressionConfig, layer: int, frames: int, h: int, w: int, ns: int) -> np.ndarray:
+def fixed_kv_index(comp: CompressionConfig, layer: int, frames: int, h: int, w: int, num_special: int) -> np.ndarray:
     """[n_fixed] static K/V slots as indices into the layer's query layout."""
-    plan = layer_plan(cc, layer, frames, h, w, ns)
-    keep = kv_static_keep(frames, h, w, ns, plan.tile, cc.phase_shift, cc.anchor)
+    plan = layer_plan(comp, layer, frames, h, w, num_special)
+    keep = kv_static_keep(frames, h, w, num_special, plan.tile, comp.phase_shift, comp.anchor)
     if plan.kind == "kv":
         return _ro(np.flatnonzero(keep))
-    part = partition(frames, h, w, ns, cc.dst_seed)
+    part = partition(frames, h, w, num_special, comp.dst_seed)
     return _ro(np.flatnonzero(keep[part.dst_pos]))
 
 

@@ -87,7 +87,7 @@ def _fail(msg: str):
 def run_eval_command(args: argparse.Namespace) -> list[dict]:
     """Execute a parsed `rvggt eval`; raises `rvggt_jax.cli.CLIError` on bad input."""
     from rvggt_jax.errors import one_line as _one_line
-    from rvggt_jax.pipeline import DEMO_WEIGHTS, enable_compilation_cache, known_presets
+    from rvggt_jax.commands import DEMO_WEIGHTS, enable_compilation_cache, known_presets
     from rvggt_jax.eval.datasets import DatasetError
     from rvggt_jax.eval.protocols import AGAINST_HIGHER, AGAINST_METRICS, PROTOCOLS
     from rvggt_jax.eval.report import write_csv, write_markdown, write_plots

@@ -8,16 +8,14 @@ qk-norm, with LayerScale), `trunk_norm`, `empty_pose_tokens [1, 1, 9]`, `embed_p
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 import chex
 import jax
 import jax.numpy as jnp
 
 from rvggt_jax import layers
 from rvggt_jax.config import CameraHeadConfig
+from rvggt_jax.types import Params
 
-Params = Mapping[str, Any]
 
 # The only LayerNorm of the head that is not torch's default (1e-5): the affine-free adaLN.
 ADALN_EPS = 1e-6

@@ -23,8 +23,8 @@ from rvggt_jax import layers
 from rvggt_jax.chunks import dynamic_slice, zeros_after
 from rvggt_jax.config import DPTHeadConfig, VGGTConfig
 from rvggt_jax.heads.camera import inverse_log_transform
+from rvggt_jax.types import Params
 
-Params = Mapping[str, Any]
 # A list of every aggregator layer's tokens, or a dict {layer index: tokens} holding at
 # least the layers the head reads; each entry is [B, S, P, 2E] (an array or the
 # aggregator's `KeptLayer`, which the head slices per group of frames).

@@ -7,15 +7,14 @@ Parameters are the `track_head` subtree of the converted state dict: `feature_ex
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 import jax
 
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.heads.dpt import Aggregated, dpt_features
 from rvggt_jax.heads.tracker import track_predictor
+from rvggt_jax.types import Params
 
-Params = Mapping[str, Any]
 
 # Upstream TrackHead builds its DPT extractor with these fixed settings.
 FEATURE_DOWN_RATIO = 2
@@ -31,8 +30,8 @@ def track_features(params: Params, aggregated: Aggregated, images: jax.Array, pa
 
 
 def track_head(params: Params, aggregated: Aggregated, images: jax.Array, patch_start_idx: int,
-               query_points: jax.Array, config: VGGTConfig, iters: int | None = None
-               ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+               query_points: jax.Array, config: VGGTConfig, iters: int | None = None,
+               shards: FrameShards | None = None) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Upstream `TrackHead.forward`.
 
     params: the `track_head` subtree. aggregated: aggregator outputs, each [B, S, P, 2E]
@@ -45,7 +44,8 @@ def track_head(params: Params, aggregated: Aggregated, images: jax.Array, patch_
 
     Returns (track_list [iters, B, S, N, 2] pixel (x, y), one entry per iteration, the last
     being the prediction; vis [B, S, N] and conf [B, S, N] in (0, 1), conf None when
-    `config.track_head.predict_conf` is off).
+    `config.track_head.predict_conf` is off). `shards`: the frames of this device (see
+    `track_predictor`).
     """
     if images.ndim != 5:
         raise ValueError(f"images must be [B, S, 3, H, W], got shape {images.shape}")
@@ -53,4 +53,4 @@ def track_head(params: Params, aggregated: Aggregated, images: jax.Array, patch_
         raise ValueError(f"query_points must be [B, N, 2] (add the batch axis to [N, 2]), "
                          f"got shape {query_points.shape}")
     fmaps = track_features(params, aggregated, images, patch_start_idx, config)
-    return track_predictor(params["tracker"], query_points, fmaps, config.track_head, iters=iters)
+    return track_predictor(params["tracker"], query_points, fmaps, config.track_head, iters=iters, shards=shards)

@@ -31,16 +31,16 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import layers
+from rvggt_jax.frames import FrameShards
 from rvggt_jax.config import TrackHeadConfig
+from rvggt_jax.types import Params
 
-Params = Mapping[str, Any]
 
 # ---------------------------------------------------------------------------------------
 # Constants upstream hard-codes (BaseTrackerPredictor / EfficientUpdateFormer defaults that
@@ -82,15 +82,6 @@ def _sincos_table(dim: int, size: int) -> np.ndarray:
     return np.concatenate([np.sin(ang), np.cos(ang)], axis=1).astype(np.float32)
 
 
-def sincos_grid_embed(dim: int, h: int, w: int) -> np.ndarray:
-    """Upstream `get_2d_sincos_pos_embed(dim, (h, w))` as an NHWC map [h, w, dim]:
-    channels [0, dim/2) embed the column (x), [dim/2, dim) the row (y). Test helper; the
-    tracker samples the separable tables directly (see `sample_grid_embed`)."""
-    tx, ty = _sincos_table(dim // 2, w), _sincos_table(dim // 2, h)
-    return np.concatenate([np.broadcast_to(tx[None], (h, w, dim // 2)),
-                           np.broadcast_to(ty[:, None], (h, w, dim // 2))], axis=-1)
-
-
 def _pixel_coord(c: jax.Array, size: int) -> jax.Array:
     """Continuous pixel index addressed by coordinate c under align_corners=True; an axis of
     size 1 maps everything to 0 (torch's unnormalisation multiplies by size - 1)."""
@@ -107,7 +98,8 @@ def _border_taps(c: jax.Array, size: int) -> tuple[jax.Array, jax.Array, jax.Arr
 
 
 def sample_grid_embed(dim: int, hw: tuple[int, int], xy: jax.Array) -> jax.Array:
-    """Bilinear, border-padded sample of `sincos_grid_embed(dim, *hw)` at xy [..., 2]
+    """Bilinear, border-padded sample of upstream's `get_2d_sincos_pos_embed(dim, hw)` map
+    (channels [0, dim/2) embed the column x, [dim/2, dim) the row y) at xy [..., 2]
     (feature-map pixels) -> [..., dim]. The map is separable (x half depends on the column
     only, y half on the row only), so each half is a 1-D interpolation of a small table."""
     h, w = hw
@@ -361,18 +353,24 @@ def update_former(p: Params, x: jax.Array, num_heads: int = UPDATE_FORMER_NUM_HE
 
 
 def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config: TrackHeadConfig,
-                    iters: int | None = None, down_ratio: int = 1
+                    iters: int | None = None, down_ratio: int = 1, shards: FrameShards | None = None
                     ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Upstream `BaseTrackerPredictor.forward` (inference; sigmoid applied).
 
     query_points [B, N, 2] pixel (x, y) in frame 0 of the images; fmaps [B, S, h, w, C]
     (h, w = image size / (stride * down_ratio)). Returns (coords [iters, B, S, N, 2] in
     image pixels, one entry per refinement iteration; vis [B, S, N]; conf [B, S, N] or
-    None when `config.predict_conf` is off). Frame 0 always returns the query."""
+    None when `config.predict_conf` is off). Frame 0 always returns the query.
+
+    Split over devices (`shards`): fmaps and the results hold this device's frames; the
+    update transformer, which attends across frames, runs on every frame's [B, N, D]
+    inputs on every device (gathered each iteration) and each keeps its frames."""
     if query_points.ndim != 3 or query_points.shape[-1] != 2:
         raise ValueError(f"query_points must be [B, N, 2], got shape {query_points.shape}")
     b, n, _ = query_points.shape
     fb, s, h, w, c = fmaps.shape
+    shards = FrameShards.single(s) if shards is None else shards
+    first = (shards.frame_ids() == 0)[None, :, None, None]  # [1, S, 1, 1]: global frame 0
     if fb != b:
         raise ValueError(f"query_points batch {b} != feature maps batch {fb}")
     iters = config.iters if iters is None else iters
@@ -386,12 +384,12 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
     if down_ratio > 1:
         query = query / float(down_ratio)
     query = query / float(config.stride)  # [B, N, 2] in feature pixels
-    query_feat = sample_features(fmaps[:, 0], query)  # [B, N, C]
+    query_feat = shards.first(sample_features(fmaps[:, 0], query)[:, None], 1)  # [B, N, C], frame 0's
 
     d_model = p["query_ref_token"].shape[-1]  # 3C + 4
     pos = sample_grid_embed(d_model, (h, w), query)  # [B, N, D]
     ref = p["query_ref_token"][0]  # [2, D]: frame 0, frames >= 1
-    ref = jnp.concatenate([ref[:1], jnp.broadcast_to(ref[1:], (s - 1, d_model))], axis=0)
+    ref = jnp.where(first[0, :, :, 0], ref[0], ref[1])  # [S, D]
     bias = pos[:, :, None, :] + ref  # [B, N, S, D] added to the transformer input
 
     coords0 = jnp.broadcast_to(query[:, None], (b, s, n, 2))
@@ -401,17 +399,17 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
         coords, feats = carry  # [B, S, N, 2], [B, S, N, C]
         coords = jax.lax.stop_gradient(coords)  # upstream detaches the previous iteration's coordinates
         corr = layers.mlp(p["corr_mlp"], correlation_features(pyramid, feats, coords, radius))
-        flows = coords - coords[:, :1]
+        flows = coords - query[:, None]  # (frame 0's coords are the query)
         flows_emb = jnp.concatenate(
             [flow_embedding(flows, c // 2), flows / FLOW_MAX_SCALE, flows / FLOW_MAX_SCALE], axis=-1)
         x = jnp.concatenate([flows_emb, corr, feats], axis=-1)  # [B, S, N, D]
-        x = jnp.swapaxes(x, 1, 2) + bias  # [B, N, S, D]
-        delta = jnp.swapaxes(update_former(p["updateformer"], x), 1, 2)  # [B, S, N, 2 + C]
+        x = shards.gather(jnp.swapaxes(x, 1, 2) + bias, 2)  # [B, N, S, D], every frame
+        delta = jnp.swapaxes(shards.local_part(update_former(p["updateformer"], x), 2), 1, 2)  # [B, S, N, 2 + C]
         # ffeat_norm is GroupNorm(1, C) on [B*N*S, C] rows: a LayerNorm over C.
         feats = feats + layers.gelu(layers.linear(p["ffeat_updater"]["0"],
                                                   layers.layer_norm(p["ffeat_norm"], delta[..., 2:])))
         coords = coords + delta[..., :2]
-        coords = jnp.concatenate([coords0[:, :1], coords[:, 1:]], axis=1)
+        coords = jnp.where(first, coords0, coords)
         return (coords, feats), coords * scale
 
     (_, feats), coord_preds = jax.lax.scan(step, (coords0, feats0), None, length=iters)

@@ -1,26 +1,20 @@
-"""Input images and output files.
+"""Input images and output files, one module per format.
 
 - `load_images(paths, mode)`: preprocessing identical to upstream VGGT's
   `load_and_preprocess_images` -> float32 [S, 3, H, W]; `load_images_with_info` also
   returns where each image's pixels went (`ImageInfo`); `find_images(folder)`.
 - `video_frames(path, every=N | fps=F, max_frames=M)`: frames of a video (PyAV),
   named by timestamp.
-- `export_reconstruction(...)` and the single writers (PLY with confidence, scene.glb,
-  COLMAP text model, cameras.json, 16-bit depth PNGs, trajectory plot) with readers for
-  checking.
+- Writers: `ply` (points with confidence), `glb` (scene.glb), `colmap` (COLMAP text
+  model), `cameras` (cameras.json), `depth` (16-bit depth PNGs), `plots` (trajectory,
+  thumbnails, depth colours); `export.export_reconstruction` writes all of them for a
+  `rvggt_jax.pipeline.Reconstruction`.
 """
 
-from rvggt_jax.io.export import (
-    export_reconstruction,
-    read_colmap_text,
-    read_depth_png,
-    read_ply,
-    write_cameras_json,
-    write_colmap_text,
-    write_depth_pngs,
-    write_ply,
-    write_trajectory_png,
-)
+from rvggt_jax.io.cameras import write_cameras_json
+from rvggt_jax.io.colmap import write_colmap_text
+from rvggt_jax.io.depth import write_depth_pngs
+from rvggt_jax.io.export import export_reconstruction
 from rvggt_jax.io.glb import write_glb
 from rvggt_jax.io.images import (
     IMAGE_EXTENSIONS,
@@ -31,7 +25,8 @@ from rvggt_jax.io.images import (
     load_images_with_info,
     preprocessed_size,
 )
-from rvggt_jax.io.ply import read_ply_properties
+from rvggt_jax.io.plots import write_trajectory_png
+from rvggt_jax.io.ply import read_ply_properties, write_ply
 from rvggt_jax.io.video import VideoError, video_frames
 
 __all__ = [
@@ -44,12 +39,9 @@ __all__ = [
     "load_images",
     "load_images_with_info",
     "preprocessed_size",
-    "read_colmap_text",
-    "read_depth_png",
-    "read_ply",
     "read_ply_properties",
-    "write_cameras_json",
     "video_frames",
+    "write_cameras_json",
     "write_colmap_text",
     "write_depth_pngs",
     "write_glb",

@@ -10,7 +10,7 @@ from typing import Mapping
 
 import numpy as np
 
-__all__ = ["colors_u8", "read_ply", "read_ply_properties", "write_ply"]
+__all__ = ["colors_u8", "read_ply_properties", "write_ply"]
 
 PathLike = str | os.PathLike
 
@@ -97,15 +97,3 @@ def read_ply_properties(path: PathLike) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: {len(body)} bytes of vertex data for {n} vertices")
     rec = np.frombuffer(body, dtype=dtype, count=n)
     return {name: rec[name].copy() for name, _ in props}
-
-
-def read_ply(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Points [N, 3] float32 and colors [N, 3] uint8 of a PLY written by `write_ply`
-    (extra properties are ignored; `read_ply_properties` returns them)."""
-    p = read_ply_properties(path)
-    missing = [k for k, _ in _BASE if k not in p]
-    if missing:
-        raise ValueError(f"{path}: unexpected PLY layout, no {missing}")
-    pts = np.stack([p["x"], p["y"], p["z"]], axis=1).astype(np.float32)
-    cols = np.stack([p["red"], p["green"], p["blue"]], axis=1).astype(np.uint8)
-    return pts, cols

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from rvggt_jax.eval.datasets.base import DatasetError
+from rvggt_jax.io.colmap import colmap_qvec, colmap_rotation
 
 __all__ = ["read_model", "write_model_bin"]
 
@@ -29,13 +30,6 @@ def pinhole(model: str, params) -> np.ndarray:
     else:
         fx, fy, cx, cy = p[:4]
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-
-
-def qvec_to_rotmat(q) -> np.ndarray:
-    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 def _read_bin(folder: Path):
@@ -89,7 +83,7 @@ def read_model(folder: Path) -> list[dict]:
         if cid not in cams:
             raise DatasetError(f"image {name} refers to camera {cid}, absent from the model in {folder}")
         model, w, h, params = cams[cid]
-        out.append(dict(name=name, extrinsic=np.concatenate([qvec_to_rotmat(q), t[:, None]], axis=1),
+        out.append(dict(name=name, extrinsic=np.concatenate([colmap_rotation(q), t[:, None]], axis=1),
                         intrinsic=pinhole(model, params), width=w, height=h))
     return sorted(out, key=lambda r: r["name"])
 
@@ -97,8 +91,6 @@ def read_model(folder: Path) -> list[dict]:
 def write_model_bin(folder: Path, names, extrinsics, intrinsics, sizes) -> None:
     """cameras.bin (PINHOLE, one per image) + images.bin (no 2D points) + an empty
     points3D.bin."""
-    from rvggt_jax.io.export import rotmat_to_qvec
-
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / "cameras.bin", "wb") as f:
         f.write(struct.pack("<Q", len(names)))
@@ -107,7 +99,7 @@ def write_model_bin(folder: Path, names, extrinsics, intrinsics, sizes) -> None:
     with open(folder / "images.bin", "wb") as f:
         f.write(struct.pack("<Q", len(names)))
         for i, (n, e) in enumerate(zip(names, extrinsics)):
-            f.write(struct.pack("<I7dI", i + 1, *rotmat_to_qvec(e[:, :3]), *e[:, 3], i + 1))
+            f.write(struct.pack("<I7dI", i + 1, *colmap_qvec(e[:, :3]), *e[:, 3], i + 1))
             f.write(n.encode("utf-8") + b"\0" + struct.pack("<Q", 0))
     with open(folder / "points3D.bin", "wb") as f:
         f.write(struct.pack("<Q", 0))

@@ -59,7 +59,7 @@ def read_scene(root: Path, name: str, **_) -> Scene:
 def write(scene, root: Path) -> Path:
     """Write a `rvggt_jax.synthetic.SyntheticScene` as ROOT/scan<N> (N from the digits of
     its name) with its exact points as Points/stl/stl<NNN>_total.ply."""
-    from rvggt_jax.io.export import write_ply
+    from rvggt_jax.io.ply import write_ply
 
     digits = re.sub(r"\D", "", scene.name) or "1"
     n = int(digits)

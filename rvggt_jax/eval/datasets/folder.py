@@ -76,7 +76,7 @@ def read_scene(root: Path, name: str, **_) -> Scene:
 def write(scene, root: Path) -> Path:
     """Write a `rvggt_jax.synthetic.SyntheticScene` as ROOT/<name> with float depth
     (.npy) and its exact points as points.ply."""
-    from rvggt_jax.io.export import write_ply
+    from rvggt_jax.io.ply import write_ply
 
     d = root / scene.name
     (d / "images").mkdir(parents=True, exist_ok=True)

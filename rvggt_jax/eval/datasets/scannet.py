@@ -72,7 +72,7 @@ def write(scene, root: Path) -> Path:
     """Write a `rvggt_jax.synthetic.SyntheticScene` as ROOT/<name> (colour and depth at
     the same size and calibration), with the union of its frames' exact points as
     <name>_vh_clean_2.ply."""
-    from rvggt_jax.io.export import write_ply
+    from rvggt_jax.io.ply import write_ply
 
     d = root / scene.name
     for sub in ("color", "depth", "pose", "intrinsic"):

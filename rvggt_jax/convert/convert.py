@@ -15,13 +15,13 @@ from typing import Any, Callable, Iterable, Mapping, Protocol, runtime_checkable
 import ml_dtypes  # noqa: F401  (registers bfloat16 & co with numpy, needed for BF16 files)
 import numpy as np
 
-from convert.rules import Path as TreePath
-from convert.rules import apply_rule, converted_shapes, find_rule
-from convert.shapes import upstream_state_dict_shapes
-from rvggt_jax.checkpoint import CheckpointError, CheckpointFileError, unreadable_message
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.convert.errors import CheckpointError, CheckpointFileError, unreadable_message
+from rvggt_jax.convert.rules import Path as TreePath
+from rvggt_jax.convert.rules import apply_rule, converted_shapes, find_rule
+from rvggt_jax.convert.shapes import upstream_state_dict_shapes
+from rvggt_jax.types import Params
 
-Params = dict[str, Any]
 TRACK_PREFIX = "track_head."
 PARAM_DTYPE = np.float32
 

@@ -1,7 +1,7 @@
 """Test helpers: random block params and an independent float64 numpy reference of the
 compressed global block (variable-size sets, explicit additive log-size bias, no static
 padding, no caching), written from the method's definition rather than from the
-static-shape code it checks."""
+static-shape code it checks. Only tests use them, so they live under tests/."""
 
 from __future__ import annotations
 
@@ -33,6 +33,13 @@ def random_block_params(key, c: int = 32, heads: int = 2, mlp_ratio: float = 4.0
             "ls1": {"gamma": 0.5 + 0.1 * jax.random.normal(next(ks), (c,), jnp.float32)}, "norm2": ln(c),
             "mlp": {"fc1": lin(c, hidden), "fc2": lin(hidden, c)},
             "ls2": {"gamma": 0.5 + 0.1 * jax.random.normal(next(ks), (c,), jnp.float32)}}
+
+
+def identity_match(n: int, batch: int) -> dict[str, jax.Array]:
+    """The match of r = 0 (every token its own group)."""
+    return {"group": jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (batch, n)),
+            "sizes": jnp.ones((batch, n), jnp.float32),
+            "unm_pos": jnp.zeros((batch, 0), jnp.int32)}
 
 
 def global_positions(frames: int, h: int, w: int, ns: int = 5) -> jax.Array:

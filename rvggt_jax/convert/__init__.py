@@ -2,12 +2,13 @@
 
 - `upstream_state_dict_shapes(config)`: every upstream key and its shape.
 - `RULES` / `find_rule` / `apply_rule`: the explicit key -> pytree-path conversion table.
+- `CheckpointError`, `CheckpointFileError` (`errors.py`, shared with `rvggt_jax.checkpoint`).
 - `convert_state_dict`, `load_safetensors`: convert (with one `CheckpointError` for all
   problems); `expected_param_shapes(config)`: our converted tree of `ShapeDtypeStruct`s.
-- `main(argv)`: the `python -m convert SRC DST` command line.
+- `main(argv)`: the `python -m rvggt_jax.convert SRC DST` command line.
 """
 
-from convert.convert import (
+from rvggt_jax.convert.convert import (
     MappingSource,
     SafetensorsSource,
     TensorSource,
@@ -19,20 +20,21 @@ from convert.convert import (
     load_safetensors,
     unflatten_params,
 )
-from convert.rules import RULES, Rule, apply_rule, find_rule
-from convert.shapes import upstream_state_dict_shapes
-from rvggt_jax.checkpoint import CheckpointError
+from rvggt_jax.convert.errors import CheckpointError, CheckpointFileError
+from rvggt_jax.convert.rules import RULES, Rule, apply_rule, find_rule
+from rvggt_jax.convert.shapes import upstream_state_dict_shapes
 
 
 def main(argv=None) -> int:
-    """`python -m convert SRC DST ...`; returns the exit status."""
-    from convert.cli import main as _main
+    """`python -m rvggt_jax.convert SRC DST ...`; returns the exit status."""
+    from rvggt_jax.convert.cli import main as _main
 
     return _main(argv)
 
 
 __all__ = [
     "CheckpointError",
+    "CheckpointFileError",
     "MappingSource",
     "RULES",
     "Rule",

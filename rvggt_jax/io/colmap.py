@@ -1,0 +1,93 @@
+"""COLMAP text model: `cameras.txt` (one PINHOLE camera per image), `images.txt`
+(world-to-camera quaternion `QW QX QY QZ` + translation, empty 2D-point line),
+`points3D.txt` (points with colour, error 0 and an empty track). Readable by COLMAP
+(`colmap model_converter`), pycolmap and nerfstudio's COLMAP loader.
+
+COLMAP's quaternions are scalar-first (qw, qx, qy, qz); `rvggt_jax.geometry` (the one
+quaternion implementation) is scalar-last (x, y, z, w), as upstream VGGT: `colmap_qvec`
+and `colmap_rotation` convert.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from rvggt_jax.geometry import mat_to_quat, nearest_rotation, quat_to_mat
+from rvggt_jax.io.cameras import check_cameras
+from rvggt_jax.io.ply import colors_u8
+
+__all__ = ["colmap_qvec", "colmap_rotation", "write_colmap_text"]
+
+PathLike = str | os.PathLike
+
+
+def colmap_qvec(rotation: np.ndarray) -> np.ndarray:
+    """COLMAP's unit quaternion (qw, qx, qy, qz), qw >= 0, of a rotation [3, 3] (float64)."""
+    x, y, z, w = mat_to_quat(np.asarray(rotation, dtype=np.float64))
+    q = np.array([w, x, y, z])
+    return q / np.linalg.norm(q)
+
+
+def colmap_rotation(qvec) -> np.ndarray:
+    """Rotation [3, 3] (float64) of a COLMAP quaternion (qw, qx, qy, qz), any norm."""
+    w, x, y, z = np.asarray(qvec, dtype=np.float64)
+    return quat_to_mat(np.array([x, y, z, w]))
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def write_colmap_text(folder: PathLike, names: Sequence[str], extrinsics: np.ndarray, intrinsics: np.ndarray,
+                      sizes: Sequence[tuple[int, int]], points: np.ndarray | None = None,
+                      colors: np.ndarray | None = None) -> None:
+    """COLMAP text model in `folder` (created): cameras.txt, images.txt, points3D.txt.
+
+    names [S] image file names (COLMAP needs them without spaces); extrinsics [S, 3, 4]
+    world-to-camera; intrinsics [S, 3, 3]; sizes [S] of (width, height) in the pixels
+    of `intrinsics`; points [N, 3], colors [N, 3] (uint8 or float in [0, 1]). Camera
+    and image ids are 1..S (camera i belongs to image i); points have ids 1..N, error
+    0 and no track.
+    """
+    e, k = check_cameras(names, extrinsics, intrinsics, sizes)
+    for name in names:
+        if any(ch.isspace() for ch in name):
+            raise ValueError(f"COLMAP image names cannot contain spaces: {name!r}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    s = len(names)
+
+    lines = ["# Camera list with one line of data per camera:",
+             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+             f"# Number of cameras: {s}"]
+    for i in range(s):
+        w, h = sizes[i]
+        fx, fy, cx, cy = k[i, 0, 0], k[i, 1, 1], k[i, 0, 2], k[i, 1, 2]
+        lines.append(f"{i + 1} PINHOLE {int(w)} {int(h)} {_fmt(fx)} {_fmt(fy)} {_fmt(cx)} {_fmt(cy)}")
+    (folder / "cameras.txt").write_text("\n".join(lines) + "\n")
+
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+             f"# Number of images: {s}, mean observations per image: 0"]
+    for i in range(s):
+        q = colmap_qvec(nearest_rotation(e[i, :, :3]))
+        t = e[i, :, 3]
+        lines.append(" ".join([str(i + 1), *map(_fmt, q), *map(_fmt, t), str(i + 1), names[i]]))
+        lines.append("")
+    (folder / "images.txt").write_text("\n".join(lines) + "\n")
+
+    pts = np.zeros((0, 3)) if points is None else np.asarray(points, dtype=np.float64)
+    cols = colors_u8(colors, len(pts))
+    with open(folder / "points3D.txt", "w") as f:
+        f.write("# 3D point list with one line of data per point:\n"
+                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
+                f"# Number of points: {len(pts)}, mean track length: 0\n")
+        f.writelines(
+            f"{j + 1} {p[0]:.7g} {p[1]:.7g} {p[2]:.7g} {c[0]} {c[1]} {c[2]} 0\n"
+            for j, (p, c) in enumerate(zip(pts, cols))
+        )
