@@ -62,9 +62,10 @@ def run(args) -> list[str]:
     batch = jax.device_put(train.stack([train.synthetic_example(args.frames, (args.height, args.width), seed=0)]))
     rows = ["| layout | S | H x W | remat | compile s | step median s | step min s | arguments MB | "
             "temporaries MB | total MB |", "|---|---:|---|---|---:|---:|---:|---:|---:|---:|"]
-    for remat in (False, True):
+    for remat in {"both": (False, True), "off": (False,), "on": (True,)}[args.remat]:
         cfg = config.with_remat(remat)
-        state = train.init_state(params, tc)
+        # a copy: the step donates its state, the next configuration starts from params again
+        state = train.init_state(jax.tree.map(jnp.copy, params), tc)
         step = train.make_train_step(cfg, tc, donate=True)
         t0 = time.perf_counter()
         compiled = step.lower(state, batch).compile()
@@ -115,6 +116,7 @@ def main() -> None:
     r.add_argument("--height", type=int, default=168)
     r.add_argument("--width", type=int, default=224)
     r.add_argument("--repeats", type=int, default=3)
+    r.add_argument("--remat", choices=("both", "off", "on"), default="both")
     p = sub.add_parser("plan")
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--size", type=int, default=518)
