@@ -48,26 +48,8 @@ def small_layout() -> VGGTConfig:
 
 
 def random_params(config: VGGTConfig, seed: int = 0) -> dict:
-    """A converted-layout tree for `config` with random weights: kernels N(0, 1/fan_in),
-    norm scales 1, biases 0, LayerScale 0.1, tokens N(0, 0.02^2)."""
-    from rvggt_jax.convert.convert import expected_param_paths, unflatten_params
-
-    rng = np.random.default_rng(seed)
-    flat = {}
-    for path, shape in expected_param_paths(config, skip_track=True).items():
-        name = path[-1]
-        if name == "scale":
-            a = np.ones(shape)
-        elif name == "bias":
-            a = np.zeros(shape)
-        elif name == "gamma":
-            a = np.full(shape, 0.1)
-        elif name == "kernel":
-            a = rng.standard_normal(shape) / np.sqrt(max(1, int(np.prod(shape[:-1]))))
-        else:
-            a = 0.02 * rng.standard_normal(shape)
-        flat[path] = jnp.asarray(a, jnp.float32)
-    return unflatten_params(flat)
+    """A random tree for `config` with upstream's initialisation (`rvggt_jax.init_params`)."""
+    return rvggt_jax.init_params(config, seed)
 
 
 def plan(args) -> list[str]:

@@ -33,8 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rvggt_jax.convert.convert import expected_param_paths, unflatten_params  # noqa: E402
 from rvggt_jax.aggregator import aggregator_forward  # noqa: E402
+import rvggt_jax  # noqa: E402
 from rvggt_jax.config import DinoConfig, DPTHeadConfig, TrackHeadConfig, VGGTConfig  # noqa: E402
 from rvggt_jax.heads.track import track_head  # noqa: E402
 
@@ -53,23 +53,8 @@ def bench_config(args) -> VGGTConfig:
 
 
 def random_params(config: VGGTConfig, seed: int = 0) -> dict:
-    rng = np.random.default_rng(seed)
-    flat = {}
-    for path, shape in expected_param_paths(config).items():
-        name = path[-1]
-        if name == "kernel":
-            fan_in = int(np.prod(shape[:-1]))
-            x = rng.standard_normal(shape, dtype=np.float32) / np.float32(np.sqrt(fan_in))
-        elif name == "scale":
-            x = np.ones(shape, np.float32)
-        elif name == "bias":
-            x = np.zeros(shape, np.float32)
-        elif name == "gamma":
-            x = np.full(shape, 0.1, np.float32)
-        else:
-            x = 0.02 * rng.standard_normal(shape, dtype=np.float32)
-        flat[path] = jnp.asarray(x)
-    return unflatten_params(flat)
+    """A random tree for `config` with upstream's initialisation (`rvggt_jax.init_params`)."""
+    return rvggt_jax.init_params(config, seed)
 
 
 def memory_mb(compiled) -> float:

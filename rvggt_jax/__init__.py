@@ -23,15 +23,20 @@ _LAZY = {
     "load_images": "rvggt_jax.io.images",
     "cost_report": "rvggt_jax.cost",
     "memory_report": "rvggt_jax.memory",
+    "init_params": "rvggt_jax.nn",
     "sharded_forward": "rvggt_jax.sharded",
     "frames_mesh": "rvggt_jax.sharded",
 }
+# Submodules reachable as attributes without an explicit import (rvggt_jax.nn.VGGT).
+_SUBMODULES = ("nn", "train")
 
-__all__ = ["VGGTConfig", *_LAZY]
+__all__ = ["VGGTConfig", *_LAZY, *_SUBMODULES]
 __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
+    if name in _SUBMODULES:
+        return importlib.import_module(f"rvggt_jax.{name}")
     raise AttributeError(f"module 'rvggt_jax' has no attribute {name!r}")

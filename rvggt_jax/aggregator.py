@@ -234,6 +234,8 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
                                                               x.reshape(b, s, num_tokens, c).astype(dtype), k, 0)
             return (x, kept_frame, kept_global, cached), None
 
+        if config.remat:  # keep only the layer's inputs for the backward pass (config.remat)
+            layer = jax.checkpoint(layer)
         cached = compression.empty_match(plan0, b) if band else None
         xs = (jnp.arange(len(group)), jnp.asarray(slot[list(group)]))
         (x, kept_frame, kept_global, cached), _ = jax.lax.scan(layer, (x, kept_frame, kept_global, cached), xs)

@@ -14,6 +14,7 @@ schedules it (and one copy per loop) at the start of the program, all alive at o
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -35,23 +36,41 @@ def row_chunks(n_rows: int, bytes_per_row: int, chunk_bytes: int | None = None, 
     return n_rows if rows >= n_rows else rows
 
 
+def _is_16bit_float(x: jax.Array) -> bool:
+    return x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _via_bits(op, x: jax.Array, index: jax.Array) -> jax.Array:
+    """`op(x, index)` (a slice or gather of x) on x's uint16 bits. The bitcast to integers
+    has no derivative (JAX would silently give zero gradients through it), so the JVP
+    applies `op` to the tangent directly: a linear map of the tangent, which reverse mode
+    transposes (into a scatter-add / update of zeros)."""
+    bits = op(jax.lax.bitcast_convert_type(x, jnp.uint16), index)
+    return jax.lax.bitcast_convert_type(bits, x.dtype)
+
+
+@_via_bits.defjvp
+def _via_bits_jvp(op, primals, tangents):
+    x, index = primals
+    return _via_bits(op, x, index), op(tangents[0], index)
+
+
 def dynamic_slice(x: jax.Array, start, size: int, axis: int) -> jax.Array:
     """`lax.dynamic_slice_in_dim`, through a uint16 view for 16-bit floats. XLA:CPU has no
     bfloat16 dynamic slice: it converts the *whole* operand to float32 and, the operand
     being loop-invariant, hoists that copy out of the loop (a float32 copy of K, V or
     every kept layer). Slicing the bits is exact and lets only the slice be converted."""
-    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
-        bits = jax.lax.dynamic_slice_in_dim(jax.lax.bitcast_convert_type(x, jnp.uint16), start, size, axis)
-        return jax.lax.bitcast_convert_type(bits, x.dtype)
+    if _is_16bit_float(x):
+        return _via_bits(lambda t, s: jax.lax.dynamic_slice_in_dim(t, s, size, axis), x, start)
     return jax.lax.dynamic_slice_in_dim(x, start, size, axis)
 
 
 def take(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
     """`jnp.take(x, idx, axis, mode="clip")`, through a uint16 view for 16-bit
     floats, for the same reason as `dynamic_slice` (XLA:CPU has no bfloat16 gather)."""
-    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
-        bits = jnp.take(jax.lax.bitcast_convert_type(x, jnp.uint16), idx, axis=axis, mode="clip")
-        return jax.lax.bitcast_convert_type(bits, x.dtype)
+    if _is_16bit_float(x):
+        return _via_bits(lambda t, i: jnp.take(t, i, axis=axis, mode="clip"), x, idx)
     return jnp.take(x, idx, axis=axis, mode="clip")
 
 
@@ -59,10 +78,8 @@ def take_along(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
     """`jnp.take_along_axis(x, idx, axis)` (indices in bounds, idx broadcast over x's
     trailing axes), through a uint16 view for 16-bit floats."""
     idx = idx.reshape(idx.shape + (1,) * (x.ndim - idx.ndim))
-    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
-        bits = jnp.take_along_axis(jax.lax.bitcast_convert_type(x, jnp.uint16), idx, axis=axis,
-                                   mode="promise_in_bounds")
-        return jax.lax.bitcast_convert_type(bits, x.dtype)
+    if _is_16bit_float(x):
+        return _via_bits(lambda t, i: jnp.take_along_axis(t, i, axis=axis, mode="promise_in_bounds"), x, idx)
     return jnp.take_along_axis(x, idx, axis=axis, mode="promise_in_bounds")
 
 

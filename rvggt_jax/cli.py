@@ -9,6 +9,8 @@ in `rvggt_jax.commands`, `rvggt_jax.pipeline` and `rvggt_jax.io`).
     rvggt view OUT_DIR [--port P]         interactive 3D viewer (viser) on localhost
     rvggt demo [--out DIR]                the whole pipeline on bundled images with a
                                           tiny RANDOM-weight model (seconds)
+    rvggt finetune DATA_DIR --out DIR     fine-tune on images + cameras (+ depth); see
+                                          docs/training.md (`rvggt_jax.train`)
     rvggt --version
 
 `reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
@@ -155,8 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     _common_options(p, presets)
 
     from rvggt_jax.eval.cli import add_eval_parser
+    from rvggt_jax.train.cli import add_finetune_parser
 
     add_eval_parser(sub)
+    add_finetune_parser(sub)
     return parser
 
 
@@ -197,6 +201,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from rvggt_jax.eval.cli import run_eval_command
 
             run_eval_command(args)
+        elif args.command == "finetune":
+            from rvggt_jax.train.cli import run_finetune_command
+
+            run_finetune_command(args)
         return 0
     except CLIError as e:
         if os.environ.get("RVGGT_DEBUG"):

@@ -101,6 +101,11 @@ class VGGTConfig:
     # torch.autocast: "float32" (exact, the default) or "bfloat16". The heads always run
     # in float32. See docs/method.md ("Mixed precision").
     dtype: str = "float32"
+    # Rematerialisation for training: each aggregator layer (frame + global block) and each
+    # DINO block is a `jax.checkpoint`, so a gradient keeps only the layer inputs and
+    # recomputes the rest in the backward pass. Values are unchanged; a forward alone is
+    # unaffected.
+    remat: bool = False
 
     # ---- derived sizes -------------------------------------------------------------
     @property
@@ -153,6 +158,10 @@ class VGGTConfig:
         except TypeError:
             raise ValueError(f"dtype must be one of {DTYPES}; got {dtype!r}") from None
         return replace(self, dtype=name).validate()
+
+    def with_remat(self, remat: bool = True) -> "VGGTConfig":
+        """A copy with per-block rematerialisation (`remat`) on or off."""
+        return replace(self, remat=bool(remat))
 
     def with_compression(self, name: str, **overrides: Any) -> "VGGTConfig":
         """A copy of this config with the named compression preset (see

@@ -270,9 +270,13 @@ def select_block(blocks: Params, indices, i: jax.Array) -> Params:
 
 def block_stack(blocks: Params, indices, x: jax.Array, num_heads: int,
                 pos: "jax.Array | RopeTables | None" = None, rope_freq: float | None = None,
-                eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
-    """Apply numbered blocks `indices` (in order) with `lax.scan`."""
+                eps: float = TORCH_LN_EPS, dtype: Any = None, remat: bool = False) -> jax.Array:
+    """Apply numbered blocks `indices` (in order) with `lax.scan`; `remat`: each block a
+    `jax.checkpoint` (VGGTConfig.remat)."""
     def step(h, i):
         return block(select_block(blocks, indices, i), h, num_heads, pos, rope_freq, eps, dtype), None
+
+    if remat:
+        step = jax.checkpoint(step)
 
     return jax.lax.scan(step, x, jnp.arange(len(indices)))[0]

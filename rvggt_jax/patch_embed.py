@@ -144,7 +144,8 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
 
     depth = dino.depth
     if depth > 1:
-        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype)
+        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype,
+                               remat=config.remat)
 
     # The last block is unrolled so that its q and k also give the saliency.
     blk = p["blocks"][str(depth - 1)]

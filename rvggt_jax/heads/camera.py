@@ -81,9 +81,12 @@ def camera_head(params: Params, aggregated_last: jax.Array, config: CameraHeadCo
     def iteration(carry, _):
         pose_in, total = carry
         # The first iteration's encoding is its delta alone; later ones add to the running
-        # sum (upstream detaches it: no gradient through earlier iterations).
-        raw = jax.lax.stop_gradient(total) + _refine(params, tokens, pose_in, config.num_heads)
-        return (raw, raw), activate_pose(raw, config.trans_act, config.quat_act, config.fl_act)
+        # sum. Upstream detaches the previous encoding, both as the sum and as the next
+        # step's input (no gradient through earlier iterations); the first step's input,
+        # the learned empty pose token, is not detached.
+        raw = total + _refine(params, tokens, pose_in, config.num_heads)
+        detached = jax.lax.stop_gradient(raw)
+        return (detached, detached), activate_pose(raw, config.trans_act, config.quat_act, config.fl_act)
 
     # scanned: one compiled refinement step instead of `iters`
     _, stacked = jax.lax.scan(iteration, (empty, jnp.zeros_like(empty)), None, length=config.iters)

@@ -397,6 +397,7 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
 
     def step(carry, _):
         coords, feats = carry  # [B, S, N, 2], [B, S, N, C]
+        coords = jax.lax.stop_gradient(coords)  # upstream detaches the previous iteration's coordinates
         corr = layers.mlp(p["corr_mlp"], correlation_features(pyramid, feats, coords, radius))
         flows = coords - query[:, None]  # (frame 0's coords are the query)
         flows_emb = jnp.concatenate(

@@ -1,0 +1,35 @@
+"""Fine-tuning VGGT with optax: losses, data, the jitted train step, checkpoints.
+
+    from rvggt_jax import train
+    tc = train.TrainConfig(learning_rate=1e-4, warmup_steps=50, total_steps=1000, train="heads")
+    state = train.init_state(params, tc)
+    step = train.make_train_step(config, tc)
+    batch = train.stack([train.synthetic_example(8, (224, 294), seed=0)])
+    state, metrics = step(state, batch)
+
+See docs/training.md. `rvggt finetune DATA_DIR --out DIR` runs `rvggt_jax.train.finetune` (module `rvggt_jax.train.loop`).
+Names resolve on first use (building the CLI parser imports no JAX).
+"""
+
+import importlib
+
+_LAZY = {
+    **{n: "rvggt_jax.train.data" for n in ("batches", "folder_scenes", "make_example", "normalize_example",
+                                           "scene_example", "stack", "synthetic_example")},
+    **{n: "rvggt_jax.train.losses" for n in ("LossConfig", "camera_loss", "regression_loss", "track_loss",
+                                             "vggt_loss")},
+    **{n: "rvggt_jax.train.step" for n in ("TrainConfig", "TrainState", "init_state", "latest_step", "loss_fn",
+                                           "make_optimizer", "make_train_step", "param_labels", "restore_state",
+                                           "save_state", "schedule")},
+    **{n: "rvggt_jax.train.loop" for n in ("FinetuneOptions", "finetune", "load_model")},
+}
+_SUBMODULES = ("data", "losses", "step", "loop", "cli")
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    if name in _SUBMODULES:
+        return importlib.import_module(f"rvggt_jax.train.{name}")
+    raise AttributeError(f"module 'rvggt_jax.train' has no attribute {name!r}")

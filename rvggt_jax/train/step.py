@@ -1,0 +1,244 @@
+"""Optimiser, train state, the jitted train step and Orbax checkpoints of the state.
+
+    tc = TrainConfig(learning_rate=1e-4, warmup_steps=100, total_steps=2000, train="heads")
+    state = init_state(params, tc)
+    step = make_train_step(config, tc)                 # one jax.jit: forward, loss, grad, AdamW
+    state, metrics = step(state, batch)                # batch: see rvggt_jax.train.losses
+    save_state(state, "ckpt/", model_config=config, train_config=tc)
+    state = restore_state("ckpt/", init_state(params, tc))   # resumes exactly
+
+The optimiser: global-norm clipping, then AdamW (decoupled weight decay on kernels,
+i.e. leaves of rank >= 2, not on biases, norms, tokens or LayerScale) with a linear
+warm-up from 0 to `learning_rate` over `warmup_steps` and a cosine decay to
+`learning_rate * final_lr_ratio` at `total_steps`. Frozen parameters
+(`TrainConfig.train`) get `optax.set_to_zero` through `optax.multi_transform`, their
+gradients are never formed (stop_gradient: XLA drops their backward pass) and they are
+not counted in the clipping norm.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.train.losses import LossConfig, vggt_loss
+
+TRAIN, FROZEN = "train", "frozen"
+HEADS = ("camera_head", "depth_head", "point_head", "track_head")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimiser and schedule (frozen, hashable: a static argument of the train step).
+
+    train: what is trained: "all", "heads" (everything but the aggregator), or a tuple
+    of path prefixes of the parameter tree ("depth_head", "aggregator/global_blocks");
+    the rest is frozen."""
+
+    learning_rate: float = 1e-4
+    warmup_steps: int = 100
+    total_steps: int = 10_000
+    final_lr_ratio: float = 0.0
+    weight_decay: float = 0.05
+    b1: float = 0.9
+    b2: float = 0.999
+    clip_norm: float = 1.0
+    train: str | tuple[str, ...] = "all"
+    loss: LossConfig = dataclasses.field(default_factory=LossConfig)
+
+    def validate(self) -> "TrainConfig":
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be > 0; got {self.learning_rate}")
+        if self.warmup_steps < 0 or self.total_steps < 1:
+            raise ValueError(f"need warmup_steps >= 0 and total_steps >= 1; got {self.warmup_steps}, "
+                             f"{self.total_steps}")
+        if not self.clip_norm > 0:
+            raise ValueError(f"clip_norm must be > 0; got {self.clip_norm}")
+        if isinstance(self.train, str) and self.train not in ("all", "heads"):
+            raise ValueError(f"train must be 'all', 'heads' or a tuple of parameter path prefixes; got {self.train!r}")
+        return self
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        d["loss"] = LossConfig(**d.get("loss", {}))
+        if isinstance(d.get("train"), list):
+            d["train"] = tuple(d["train"])
+        return cls(**d).validate()
+
+
+@flax.struct.dataclass
+class TrainState:
+    """step (int32 scalar), params (the converter's tree), opt_state (optax)."""
+
+    step: jax.Array
+    params: Any
+    opt_state: Any
+
+
+def _path_str(path) -> str:
+    return "/".join(str(getattr(k, "key", getattr(k, "name", k))) for k in path)
+
+
+def param_labels(params: Any, train: str | tuple[str, ...]) -> Any:
+    """A tree like `params` of "train" / "frozen" labels for `TrainConfig.train`.
+    Raises when a prefix matches no parameter (a typo would silently freeze everything)."""
+    if train == "all":
+        prefixes: tuple[str, ...] = ("",)
+    elif train == "heads":
+        prefixes = tuple(h for h in HEADS if h in params)
+    else:
+        prefixes = tuple(p.strip("/") for p in train)
+    paths = [_path_str(p) for p, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
+    for pre in prefixes:
+        if pre and not any(p == pre or p.startswith(pre + "/") for p in paths):
+            raise ValueError(f"train prefix {pre!r} matches no parameter (top level: {sorted(params)})")
+
+    def label(path, _):
+        s = _path_str(path)
+        return TRAIN if any(not pre or s == pre or s.startswith(pre + "/") for pre in prefixes) else FROZEN
+
+    return jax.tree_util.tree_map_with_path(label, params)
+
+
+def schedule(tc: TrainConfig) -> optax.Schedule:
+    """Linear warm-up to the peak, cosine decay to `final_lr_ratio` of it at total_steps."""
+    return optax.warmup_cosine_decay_schedule(
+        init_value=0.0, peak_value=tc.learning_rate, warmup_steps=tc.warmup_steps,
+        decay_steps=max(tc.total_steps, tc.warmup_steps + 1), end_value=tc.learning_rate * tc.final_lr_ratio)
+
+
+def make_optimizer(tc: TrainConfig, params: Any) -> optax.GradientTransformation:
+    """clip_by_global_norm + AdamW for the trained leaves, set_to_zero for the frozen."""
+    tc.validate()
+    decay_mask = jax.tree.map(lambda p: jnp.ndim(p) >= 2, params)
+    trained = optax.chain(
+        optax.clip_by_global_norm(tc.clip_norm),
+        optax.adamw(schedule(tc), b1=tc.b1, b2=tc.b2, weight_decay=tc.weight_decay, mask=decay_mask))
+    return optax.multi_transform({TRAIN: trained, FROZEN: optax.set_to_zero()}, param_labels(params, tc.train))
+
+
+def init_state(params: Any, tc: TrainConfig) -> TrainState:
+    """A fresh train state (step 0) for `params`."""
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=make_optimizer(tc, params).init(params))
+
+
+def _query_points(batch: dict) -> jax.Array | None:
+    return batch["tracks"][:, 0] if "tracks" in batch else None
+
+
+def loss_fn(params: Any, batch: dict, config: VGGTConfig, loss_cfg: LossConfig) -> tuple[jax.Array, dict]:
+    """(objective, parts) of `rvggt_forward(params, batch["images"], config)` on a batch."""
+    from rvggt_jax.model import rvggt_forward
+
+    out = rvggt_forward(params, batch["images"], config, _query_points(batch))
+    return vggt_loss(out, batch, loss_cfg)
+
+
+def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
+                    ) -> Callable[[TrainState, dict], tuple[TrainState, dict]]:
+    """`step(state, batch) -> (state, metrics)`, one `jax.jit` (forward, loss, gradient,
+    clipping, AdamW). metrics: every loss part, "grad_norm" (trained leaves, before
+    clipping) and "lr" (the rate this step used). `donate`: the input state's buffers are
+    reused for the output (do not use a state after passing it)."""
+    tc.validate()
+    config.validate()
+
+    def step(state: TrainState, batch: dict) -> tuple[TrainState, dict]:
+        labels = param_labels(state.params, tc.train)
+        # frozen leaves as constants: their cotangents (and any backward pass that only
+        # they need, e.g. the aggregator when training heads) are never computed
+        live = jax.tree.map(lambda p, lab: p if lab == TRAIN else jax.lax.stop_gradient(p), state.params, labels)
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(live, batch, config, tc.loss)
+        trained = jax.tree.map(lambda g, lab: g if lab == TRAIN else jnp.zeros((), g.dtype), grads, labels)
+        tx = make_optimizer(tc, state.params)
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        grad_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g.astype(jnp.float32))) for g in jax.tree.leaves(trained)))
+        metrics = dict(parts, grad_norm=grad_norm, lr=schedule(tc)(state.step))
+        return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
+
+    return jax.jit(step, donate_argnums=(0,) if donate else ())
+
+
+# ---------------------------------------------------------------------------------------
+# checkpoints
+# ---------------------------------------------------------------------------------------
+
+STATE_DIR = "state"
+META_NAME = "train.json"
+
+
+def save_state(state: TrainState, directory: str | Path, *, model_config: VGGTConfig | None = None,
+               train_config: TrainConfig | None = None, keep: int = 2) -> Path:
+    """Write `state` as Orbax checkpoint `directory/state/<step>/` (the `keep` newest are
+    kept) and, when given, the configs to `directory/train.json`. Returns the step's
+    folder."""
+    import orbax.checkpoint as ocp
+
+    from rvggt_jax.checkpoint import _quiet_absl
+
+    directory = Path(directory).absolute()
+    directory.mkdir(parents=True, exist_ok=True)
+    step = int(jax.device_get(state.step))
+    mgr = ocp.CheckpointManager(directory / STATE_DIR, options=ocp.CheckpointManagerOptions(max_to_keep=keep))
+    try:
+        with _quiet_absl():
+            mgr.save(step, args=ocp.args.StandardSave(state), force=True)
+            mgr.wait_until_finished()
+    finally:
+        mgr.close()
+    if model_config is not None or train_config is not None:
+        meta = {}
+        if model_config is not None:
+            meta["model"] = model_config.to_dict()
+        if train_config is not None:
+            meta["train"] = train_config.to_dict()
+        (directory / META_NAME).write_text(json.dumps(meta, indent=1))
+    return directory / STATE_DIR / str(step)
+
+
+def latest_step(directory: str | Path) -> int | None:
+    """The newest saved step under `directory`, or None."""
+    import orbax.checkpoint as ocp
+
+    d = Path(directory).absolute() / STATE_DIR
+    if not d.is_dir():
+        return None
+    mgr = ocp.CheckpointManager(d)
+    try:
+        return mgr.latest_step()
+    finally:
+        mgr.close()
+
+
+def restore_state(directory: str | Path, like: TrainState, step: int | None = None) -> TrainState:
+    """The state saved under `directory` (newest step, or `step`), restored into the
+    structure, shapes and dtypes of `like` (e.g. `init_state(params, tc)`, or its
+    `jax.eval_shape`)."""
+    import orbax.checkpoint as ocp
+
+    from rvggt_jax.checkpoint import _quiet_absl
+
+    d = Path(directory).absolute() / STATE_DIR
+    mgr = ocp.CheckpointManager(d)
+    try:
+        step = mgr.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no train-state checkpoint under {d}")
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), like)
+        with _quiet_absl():
+            return mgr.restore(step, args=ocp.args.StandardRestore(abstract))
+    finally:
+        mgr.close()

@@ -1,0 +1,16 @@
+"""A micro VGGT layout for training tests: every module of the real architecture at the
+smallest widths and depths (4 aggregator layers, 1 DINO block), so that a gradient step
+compiles in seconds on a CPU."""
+
+from rvggt_jax.config import CameraHeadConfig, DinoConfig, DPTHeadConfig, TrackHeadConfig, VGGTConfig
+
+
+def micro_config(**overrides) -> VGGTConfig:
+    """4 layers of width 32 (2 heads), DPT heads reading layers 0-3, image size 56."""
+    base = dict(img_size=56, embed_dim=32, depth=4, num_heads=2,
+                dino=DinoConfig(depth=1, num_heads=2),
+                camera_head=CameraHeadConfig(num_heads=2, trunk_depth=1, iters=2),
+                dpt_head=DPTHeadConfig(features=8, out_channels=(4, 8, 16, 16), intermediate_layer_idx=(0, 1, 2, 3)),
+                track_head=TrackHeadConfig(features=8, hidden_size=16, corr_levels=2, corr_radius=1, iters=2))
+    base.update(overrides)
+    return VGGTConfig(**base).validate()
