@@ -16,6 +16,7 @@ frames x tokens into one axis of `frames * L` rows.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -147,10 +148,7 @@ class FrameShards:
         promotes a bfloat16 all-reduce to float32 (twice the buffer)."""
         if not self.sharded:
             return x
-        if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
-            bits = jax.lax.bitcast_convert_type(x, jnp.uint16)
-            return jax.lax.bitcast_convert_type(jax.lax.psum(bits, self.axis), x.dtype)
-        return jax.lax.psum(x, self.axis)
+        return _moved(lambda t: jax.lax.psum(t, self.axis), x)
 
     def local_positions(self, positions: np.ndarray, per_frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Split static global token positions [M] (ascending) over the devices:
@@ -186,11 +184,7 @@ class FrameShards:
         pairs = [(i, (i + 1) % n) for i in range(n)]
 
         def shift(a):
-            if a.dtype.itemsize == 2 and jnp.issubdtype(a.dtype, jnp.floating):
-                # as bits: XLA:CPU would move a bfloat16 permute in float32
-                bits = jax.lax.ppermute(jax.lax.bitcast_convert_type(a, jnp.uint16), self.axis, pairs)
-                return jax.lax.bitcast_convert_type(bits, a.dtype)
-            return jax.lax.ppermute(a, self.axis, pairs)
+            return _moved(lambda t: jax.lax.ppermute(t, self.axis, pairs), a)
 
         return jax.tree.map(shift, tree)
 
@@ -257,3 +251,24 @@ class FrameShards:
 
 
 jax.tree_util.register_static(FrameShards)
+
+
+def _moved(op: Callable[[jax.Array], jax.Array], x: jax.Array) -> jax.Array:
+    """op(x) for a collective that only moves values (a permute, a psum with one non-zero
+    term): 16-bit floats go as their bit patterns, because XLA:CPU would move a
+    bfloat16 collective in float32 (twice the buffer)."""
+    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
+        return _as_bits(op, x)
+    return op(x)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _as_bits(op, x: jax.Array) -> jax.Array:
+    # the bitcast to integers has no derivative (JAX would give zero gradients through
+    # it): the JVP applies op, a linear map, to the tangent itself
+    return jax.lax.bitcast_convert_type(op(jax.lax.bitcast_convert_type(x, jnp.uint16)), x.dtype)
+
+
+@_as_bits.defjvp
+def _as_bits_jvp(op, primals, tangents):
+    return _as_bits(op, primals[0]), op(tangents[0])
