@@ -2,7 +2,7 @@
 4 and 3 host CPU devices (uneven frames), dense and compressed, with the track head.
 
 The checks run in one subprocess (tests/_sharded_worker.py, started by conftest.py when
-collection ends, so that it compiles alongside the other tests): the device count is
+the session begins, so that it compiles alongside the other tests): the device count is
 fixed when JAX starts. Tolerance: 1e-5 relative (float32); the split changes matmul shapes
 (each device projects its own frames), hence float summation order, nothing else.
 
@@ -24,7 +24,7 @@ TOL = 1e-5
 
 @pytest.fixture(scope="module")
 def report():
-    code, out, err = sharded_worker_result()  # (started by conftest when collection ended)
+    code, out, err = sharded_worker_result()  # (started by conftest when the session began)
     assert code == 0, err[-4000:]
     return json.loads(out.strip().splitlines()[-1])
 
