@@ -211,16 +211,7 @@ def ring_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array
     The shares travel around the devices (`FrameShards.ring_shift`, a collective permute
     per step); each step's partial attention, with its log-sum-exp, is folded into a
     running float32 result (the online softmax of flash attention, across devices). On
-    one device it is `attention` over the concatenated keys."""
-    if not shards.sharded:
-        for ek, ev, eb in extra:
-            nk = k.shape[1]
-            k, v = jnp.concatenate([k, ek], axis=1), jnp.concatenate([v, ev], axis=1)
-            if key_bias is not None or eb is not None:
-                zeros = jnp.zeros(k.shape[:1] + (nk,), jnp.float32)
-                key_bias = jnp.concatenate([zeros if key_bias is None else key_bias,
-                                            jnp.zeros(ek.shape[:2], jnp.float32) if eb is None else eb], axis=1)
-        return attention(q, k, v, key_bias, scale=scale, implementation="blocked", block_bytes=block_bytes)
+    one device: the own keys, then the extra ones, folded the same way."""
     d = q.shape[-1]
     scale = 1.0 / math.sqrt(d) if scale is None else float(scale)
     block_bytes = LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
@@ -240,7 +231,8 @@ def ring_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array
 
     acc = part(k, v, key_bias)
     acc = tuple(a.astype(jnp.float32) for a in acc)
-    acc, _ = jax.lax.fori_loop(1, shards.devices, step, (acc, (k, v, key_bias)))
+    if shards.sharded:
+        acc, _ = jax.lax.fori_loop(1, shards.devices, step, (acc, (k, v, key_bias)))
     for ek, ev, eb in extra:
         acc = fold(acc, part(ek, ev, eb))
     return acc[0].astype(q.dtype)

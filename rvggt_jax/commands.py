@@ -157,15 +157,14 @@ def devices_mesh(devices: int | None):
     or None for one device."""
     import jax
 
-    have = jax.local_devices()
-    n = len(have) if devices is None else devices
-    if not 1 <= n <= len(have):
-        raise CLIError(f"--devices {n}: this machine has {len(have)} {jax.default_backend().upper()} device(s)")
-    if n == 1:
-        return None
     from rvggt_jax.sharded import frames_mesh
 
-    return frames_mesh(n)
+    n = len(jax.local_devices()) if devices is None else devices
+    try:
+        mesh = frames_mesh(n)
+    except ValueError as e:
+        raise CLIError(f"--devices {n}: {e}") from None
+    return None if n == 1 else mesh
 
 
 # ---------------------------------------------------------------------------------------

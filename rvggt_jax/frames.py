@@ -7,8 +7,9 @@ Device d holds frames [d * local, (d + 1) * local) of the sequence padded to
 `devices * local` frames (the padding frames are zeros, at the end, and never reach a
 real token: every cross-frame op below drops them). The forward pass is one program for
 every device (`jax.shard_map`); the methods here are its only cross-device steps, each a
-JAX collective over `axis` (all-gather, psum, psum-scatter), and each the identity (or
-a plain local op) on one device, so the single-device forward runs the same code.
+JAX collective over `axis` (all-gather, psum, permutes around the ring of devices), and
+each the identity (or a plain local op) on one device, so the single-device forward runs
+the same code.
 
 Token-level methods take `per_frame` (tokens per frame, L): the global blocks flatten
 frames x tokens into one axis of `frames * L` rows.
@@ -112,43 +113,28 @@ class FrameShards:
 
     # ---- tokens ----------------------------------------------------------------------
 
-    def take_rows(self, x: jax.Array, idx: jax.Array, per_frame: int,
-                  fn: Callable[[jax.Array], jax.Array] | None = None) -> jax.Array:
+    def take_rows(self, x: jax.Array, idx: jax.Array, per_frame: int) -> jax.Array:
         """Rows idx [B, M] (global token positions) of the sequence whose local rows are
-        x [B, local * L, ...], on every device: [B, M, ...] (`fn` applied per row first).
-        Each row comes from the device that holds it (a psum of one non-zero term: exact)."""
-        return self.take_owned(x, idx, self.local * per_frame, fn)
-
-    def take_owned(self, x: jax.Array, idx: jax.Array, rows: int,
-                   fn: Callable[[jax.Array], jax.Array] | None = None) -> jax.Array:
-        """`take_rows` of an axis split in `rows` rows per device (device d holds rows
-        [d * rows, (d + 1) * rows) in x [B, rows, ...])."""
+        x [B, local * L, ...], on every device: [B, M, ...]. Each row comes from the
+        device that holds it (a psum of one non-zero term: exact)."""
         if not self.sharded:
-            got = chunks.take_along(x, idx, axis=1)
-            return got if fn is None else fn(got)
-        start = self.index() * rows
+            return chunks.take_along(x, idx, axis=1)
+        start = self.offset(per_frame)
         n_local = x.shape[1]
 
         def mine(ic):
             rel = ic - start
             got = chunks.take_along(x, jnp.clip(rel, 0, n_local - 1), axis=1)
-            if fn is not None:
-                got = fn(got)
             held = ((rel >= 0) & (rel < n_local)).reshape(ic.shape + (1,) * (got.ndim - 2))
             return jnp.where(held, got, jnp.zeros_like(got))
 
-        # in chunks of rows: the gathered rows (and fn's float32 work) never exist for all
-        # of idx at once, only the result
+        # in chunks of rows: the gathered rows never exist for all of idx at once, only
+        # the result
         per_row = idx.shape[0] * math.prod(x.shape[2:]) * 4 * 3
-        return self.sum_exclusive(chunks.map_tokens(mine, (idx,), bytes_per_row=per_row, dep=x))
-
-    def sum_exclusive(self, x: jax.Array) -> jax.Array:
-        """psum of arrays where at most one device holds a non-zero value per element: 16-bit
-        floats are summed as their bit patterns (exact: the others add 0), because XLA
-        promotes a bfloat16 all-reduce to float32 (twice the buffer)."""
-        if not self.sharded:
-            return x
-        return _moved(lambda t: jax.lax.psum(t, self.axis), x)
+        # (16-bit floats summed as bits: exact, the other devices add 0, and XLA:CPU
+        # would move a bfloat16 all-reduce in float32)
+        return _moved(lambda t: jax.lax.psum(t, self.axis), chunks.map_tokens(mine, (idx,), bytes_per_row=per_row,
+                                                                              dep=x))
 
     def local_positions(self, positions: np.ndarray, per_frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Split static global token positions [M] (ascending) over the devices:
@@ -170,9 +156,7 @@ class FrameShards:
 
     def gather_results(self, y: jax.Array, order: np.ndarray, axis: int = 1) -> jax.Array:
         """Per-device results y [.., M_max, ..] along `axis` -> the global order [.., M, ..]
-        (`order` from `local_positions`)."""
-        if not self.sharded:
-            return y if np.array_equal(order, np.arange(y.shape[axis])) else jnp.take(y, order, axis=axis)
+        (`order` from `local_positions`): an all-gather."""
         full = jax.lax.all_gather(y, self.axis, axis=axis, tiled=True)
         return jnp.take(full, jnp.asarray(order, jnp.int32), axis=axis, mode="clip")
 
@@ -226,24 +210,6 @@ class FrameShards:
 
         first = take(d, blocks, chunks.zeros_after(idx.shape + blocks.shape[2:], blocks.dtype, blocks))
         return jax.lax.fori_loop(1, n, step, (blocks, first))[1]
-
-    # ---- reductions over devices -----------------------------------------------------
-
-    def sum(self, x: jax.Array) -> jax.Array:
-        return jax.lax.psum(x, self.axis) if self.sharded else x
-
-    def sum_scatter(self, x: jax.Array, axis: int) -> jax.Array:
-        """Sum over devices, this device keeping its 1/devices share of `axis` (whose size
-        is a multiple of `devices`)."""
-        if not self.sharded:
-            return x
-        return jax.lax.psum_scatter(x, self.axis, scatter_dimension=axis, tiled=True)
-
-    def all_gather(self, x: jax.Array, axis: int) -> jax.Array:
-        """Every device's x concatenated along `axis` (the inverse of `sum_scatter`'s split)."""
-        if not self.sharded:
-            return x
-        return jax.lax.all_gather(x, self.axis, axis=axis, tiled=True)
 
     def share(self, n: int) -> int:
         """Rows per device when `n` rows are split evenly (n rounded up)."""

@@ -121,15 +121,22 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
       on request (config.with_outputs): saliency [B,S,h*w], patch_tokens [B*S,h*w,C],
       aggregated_XX [B,S,P,2C].
     """
+    images, query_points = check_inputs(params, images, config, query_points)
+    return forward_frames(params, images, config, query_points)
+
+
+def check_inputs(params: Params, images: Any, config: VGGTConfig, query_points: Any = None
+                 ) -> tuple[jax.Array, jax.Array | None]:
+    """The checks of a forward's inputs (config, params, images, query points): images as
+    [B, S, 3, H, W], query points as [B, N, 2] or None; `InputError` naming the problem."""
     config.validate()
     check_params(params, config)
     images = check_images(images, config)
-    b = images.shape[0]
     if query_points is not None:
         if not config.enable_track or "track_head" not in params:
             raise InputError("query_points given but this model has no track head")
-        query_points = check_query_points(query_points, b)
-    return forward_frames(params, images, config, query_points)
+        query_points = check_query_points(query_points, images.shape[0])
+    return images, query_points
 
 
 def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None = None,

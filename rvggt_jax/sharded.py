@@ -24,7 +24,7 @@ from jax.sharding import PartitionSpec as P
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.frames import FRAMES_AXIS, FrameShards
 from rvggt_jax.layers import Params
-from rvggt_jax.model import InputError, check_images, check_params, check_query_points, forward_frames
+from rvggt_jax.model import check_inputs, forward_frames
 
 
 def frames_mesh(devices: int | None = None) -> Mesh:
@@ -32,7 +32,8 @@ def frames_mesh(devices: int | None = None) -> Mesh:
     available = jax.devices()
     n = len(available) if devices is None else int(devices)
     if not 1 <= n <= len(available):
-        raise ValueError(f"asked for {n} devices; {len(available)} are available ({jax.default_backend()})")
+        raise ValueError(f"asked for {n} devices; this machine has {len(available)} "
+                         f"{jax.default_backend().upper()} device(s)")
     return jax.make_mesh((n,), (FRAMES_AXIS,), devices=available[:n], axis_types=(AxisType.Auto,))
 
 
@@ -70,14 +71,8 @@ def sharded_forward(params: Params, images: jax.Array, config: VGGTConfig, mesh:
     Traceable under `jax.jit` (config and mesh static), on concrete or abstract inputs
     (`jax.ShapeDtypeStruct`), so XLA's memory analysis of the sharded program is one
     `.lower(...).compile()` away."""
-    config.validate()
-    check_params(params, config)
-    images = check_images(images, config)
+    images, query_points = check_inputs(params, images, config, query_points)
     b, s = images.shape[:2]
-    if query_points is not None:
-        if not config.enable_track or "track_head" not in params:
-            raise InputError("query_points given but this model has no track head")
-        query_points = check_query_points(query_points, b)
     shards = frame_shards(mesh, s)
     frames = P(None, FRAMES_AXIS)
     pad = shards.padded - s

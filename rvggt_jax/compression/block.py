@@ -17,11 +17,12 @@ The state is a dict:
   shards     static `FrameShards`: the frames of x on this device (absent: all of them)
 
 Split over devices (`FrameShards`), x holds this device's frames and the state is
-sequence-wide on every device. What a layer exchanges: dense, K and V of every token
-(all-gather); K/V downsampling, the kept tokens' rows (one psum of their rows); merging,
-the dst tokens' unit metric rows and every src's best score (matching), the group sums
-of Q (psum-scatter: each device keeps its share of the merged queries), K and V (psum),
-and the merged attention's output rows (all-gather). See docs/sharding.md.
+sequence-wide on every device. What a layer exchanges: dense, every device's K and V
+around the ring (`ring_attention`); K/V downsampling, the kept tokens' rows (one psum);
+merging, the dst tokens' unit metric rows around the ring and every src's best score
+(all-gather) when it matches, the float32 group sums of Q, K and V reduce-scattered block
+by block (each device keeps its share of the merged rows), the merged K/V around the
+ring, and the merged output rows around the ring for the unmerge. See docs/sharding.md.
 """
 
 from __future__ import annotations
