@@ -225,8 +225,8 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
             return update_tokens(whole, x, tables, axis=0, bytes_per_row=per_sequence, multiple=1)
         return update_tokens(lambda xc: whole(xc, *tables), x, axis=0, bytes_per_row=per_sequence, multiple=1)
 
-    k, v = map_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), (x, *tables),
-                      bytes_per_row=b * c * 4 * 2 + c * 4)
+    x, (k, v) = chunks.read_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), x, tables,
+                                   bytes_per_row=b * c * 4 * 2 + c * 4)
     return attend_rows(p, x, tables, k, v, num_heads, eps=eps, dtype=dtype)
 
 
