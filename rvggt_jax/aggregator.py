@@ -127,18 +127,16 @@ def aggregator_forward(
 
 def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> tuple[tuple[int, ...], ...]:
     """Runs of consecutive layers whose global blocks share one static plan: each run is
-    one `lax.scan`. A layer that computes a band's match joins the layers that reuse it
-    (the scan computes the match at its first step and carries it). Dense: one run of
-    every layer."""
+    one `lax.scan`. Dense: one run of every layer. A band's first layer (it computes the
+    match) is a run apart from the layers that reuse it: inside their scan it would be a
+    `lax.cond` reading the residual stream, and XLA then copies the stream for the
+    in-place update after it (4 GB per layer at 1000 frames of VGGT-1B)."""
     if config.compression.is_dense:
         return (tuple(range(config.depth)),)
     plans = [_plan(config, i, frames, grid_hw) for i in range(config.depth)]
     groups: list[list[int]] = []
     for i, plan in enumerate(plans):
         if groups and plans[groups[-1][-1]] == plan:
-            groups[-1].append(i)
-        elif groups and plan.match == "reuse" and _storing(plans[groups[-1][0]]) and \
-                plans[groups[-1][0]] == dataclasses.replace(plan, match="compute"):
             groups[-1].append(i)
         else:
             groups.append([i])
@@ -200,14 +198,13 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
     kept_frame = chunks.zeros_after(shape, dtype, tokens)
     kept_global = chunks.zeros_after(shape, dtype, kept_frame)
     for group in layer_groups(config, frames, grid_hw):
-        # a group that starts by computing its band's match carries it through its steps
+        # a group of layers that compute and store a band's match carries the last one out
         band = _storing(_plan(config, group[0], frames, grid_hw)) if state is not None else False
-        last = group[-1]
 
         plan0 = compression.layer_plan(config.compression, group[0], frames, *grid_hw, config.patch_start_idx)
         key = plan0.match_key
 
-        def layer(carry, xs_i, group=group, band=band, last=last, key=key):
+        def layer(carry, xs_i, group=group, band=band, key=key):
             x, kept_frame, kept_global, cached = carry
             i, k = xs_i
             p_frame = layers.select_block(p["frame_blocks"], group, i)
@@ -221,11 +218,6 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
             x = x.reshape(b, s * num_tokens, c)
             if state is None:
                 x = compression.dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
-            elif band and len(group) > 1:
-                # the plan of the reusing layers, told to compute the match at the first step
-                st = {**state, "match": {**state["match"], key: cached}}
-                x, after = compression.global_block(p_global, x, global_pos, last, config, st, fresh=i == 0)
-                cached = after["match"][key]
             else:
                 x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
                 if band:

@@ -152,8 +152,8 @@ def dense_global_block(p_block, x: jax.Array, pos, config, shards: FrameShards |
                                dtype=dtype)
 
 
-def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State,
-                 fresh: jax.Array | None = None) -> tuple[jax.Array, State]:
+def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State
+                 ) -> tuple[jax.Array, State]:
     """One global block under the configured compression.
 
     p_block: one upstream Block's params; x [B, N, C] (the float32 residual stream),
@@ -161,10 +161,7 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     [1, N, 2]); layer: the global layer index (Python int). Attention and MLP run in
     `config.compute_dtype`. Returns (x [B, N, C], state), the state with this layer's
     match (and K/V slots) cached when its plan stores them.
-
-    `fresh` (a traced bool, for a `lax.scan` over a band): a layer whose plan reuses the
-    band's match computes it instead when `fresh` is true (the band's first layer), and
-    returns it in the state for the next step."""
+    """
     cc = config.compression
     geom: Geometry = state["geometry"]
     plan = plan_for(config, layer, geom)
@@ -217,10 +214,6 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         if plan.match_key not in state["match"]:
             raise ValueError(f"global block {layer} reuses the match of {plan.match_key}, which is not cached")
         match = state["match"][plan.match_key]
-        if fresh is not None:
-            match = jax.lax.cond(fresh, compute, lambda: match)
-            state["match"] = {**state["match"], plan.match_key: match}
-            state["kv"] = {k: v for k, v in state["kv"].items() if not k.startswith(f"{plan.match_key}|")}
     else:
         match = compute()
         if plan.match_key is not None:
@@ -260,7 +253,7 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         km = merged("k", qm)
         vm = merged("v", km)
     else:
-        x, qm = merged("q")
+        x, qm = merged("q", match["group"])
         x, km = merged("k", qm)
         x, vm = merged("v", km)
     # Over devices, the keys are every device's merged rows, passed around (those the

@@ -98,11 +98,18 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
         first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
         return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
 
+    def unit_rows(idx):
+        # [B, M, C] unit rows in `dtype`, gathered, transformed and normalised a chunk at a
+        # time: the float32 rows of all src (3 GB at 1000 frames of VGGT-1B) never exist
+        per_row = b * metric.shape[-1] * 4 * 3
+        return chunks.map_tokens(lambda i: _unit(chunks.take(metric, i[0], axis=1), dtype), (idx[None],),
+                                 bytes_per_row=per_row, dep=metric)
+
     # the unit src rows once (a [G*Na, C] copy in the compute dtype: gathering them block
     # by block inside the loop is 2x slower), then blocks of src rows against the dst
-    src = _unit(chunks.take(metric, src_idx.reshape(-1), axis=1), dtype)
+    src = unit_rows(src_idx.reshape(-1))
     if g == 1:
-        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C] (a device's: [B, Nb', C])
+        dst = unit_rows(dst_idx[0])  # [B, Nb, C] (a device's: [B, Nb', C])
         rows = chunks.row_chunks(na, b * dst.shape[1] * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
         rows = min(rows, chunk) if chunk > 0 else rows
         if not sharded:
