@@ -19,6 +19,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Bytes of the widest per-token intermediate (the MLP hidden layer [rows, 4C] in float32)
 # computed at once. Per-token work over a long sequence (1000 frames of VGGT-1B: 1M
@@ -64,6 +65,75 @@ def dynamic_slice(x: jax.Array, start, size: int, axis: int) -> jax.Array:
     if _is_16bit_float(x):
         return _via_bits(lambda t, s: jax.lax.dynamic_slice_in_dim(t, s, size, axis), x, start)
     return jax.lax.dynamic_slice_in_dim(x, start, size, axis)
+
+
+@jax.tree_util.register_pytree_node_class
+class Bits16:
+    """A 16-bit float buffer held as its uint16 bits, for buffers a loop slices.
+
+    `dynamic_slice` above views a 16-bit operand as bits at the slice; for a
+    loop-invariant operand XLA hoists that view out of the loop, a copy of the whole
+    buffer (8.5 GB for the kept layers' halves at 1000 frames of VGGT-1B, at the heads).
+    Held as bits from the start, nothing is converted but what is written and read.
+
+    Derivatives: bits have none, so the buffer carries a `shadow` of its float dtype
+    whose value is never used: writes and reads send their tangents through it (custom
+    JVPs). In a forward pass without derivatives the shadow is dead and XLA removes it."""
+
+    def __init__(self, bits: jax.Array, shadow: jax.Array):
+        self.bits, self.shadow = bits, shadow
+
+    @classmethod
+    def zeros_after(cls, shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> "Bits16":
+        return cls(zeros_after(shape, jnp.uint16, dep), zeros_after(shape, dtype, dep))
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.bits.shape
+
+    @property
+    def dtype(self):
+        return self.shadow.dtype
+
+    def update_index(self, x: jax.Array, index) -> "Bits16":
+        """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
+        return Bits16(*_store_bits(self.bits, self.shadow, x.astype(self.dtype), index))
+
+    def read(self, op, *index) -> jax.Array:
+        """op(buffer, *index) (slicing ops only) in the float dtype."""
+        return _load_bits(op, self.bits, self.shadow, *index)
+
+    def tree_flatten(self):
+        return (self.bits, self.shadow), None
+
+    @classmethod
+    def tree_unflatten(cls, _, children):
+        return cls(*children)
+
+
+@jax.custom_jvp
+def _store_bits(bits, shadow, x, index):
+    return jax.lax.dynamic_update_index_in_dim(bits, jax.lax.bitcast_convert_type(x, jnp.uint16), index, 0), shadow
+
+
+@_store_bits.defjvp
+def _store_bits_jvp(primals, tangents):
+    bits, shadow, x, index = primals
+    _, shadow_dot, x_dot, _ = tangents
+    out = _store_bits(bits, shadow, x, index)
+    no_tangent = np.zeros(bits.shape, dtype=jax.dtypes.float0)
+    return out, (no_tangent, jax.lax.dynamic_update_index_in_dim(shadow_dot, x_dot.astype(shadow.dtype), index, 0))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _load_bits(op, bits, shadow, *index):
+    return jax.lax.bitcast_convert_type(op(bits, *index), shadow.dtype)
+
+
+@_load_bits.defjvp
+def _load_bits_jvp(op, primals, tangents):
+    bits, shadow, *index = primals
+    return _load_bits(op, bits, shadow, *index), op(tangents[1], *index)
 
 
 def take(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
