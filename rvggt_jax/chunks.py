@@ -7,9 +7,17 @@ token (norms, Q/K/V projections, RoPE, output projection, MLP) therefore runs ov
 of TOKEN_CHUNK_BYTES: `map_tokens` stitches new arrays, `update_tokens` rewrites the
 residual stream in place. Short sequences take one chunk and no loop.
 
+What keeps the residual stream x (4 GB in float32 at that size) a single buffer from
+layer to layer, found in XLA's buffer assignment:
+- no loop leaves a shorter tail chunk to a second update outside it (`_sweep`: even
+  chunks, the last one overlapping and masked); that update made XLA copy x;
+- a loop that reads x and precedes an in-place pass over it owns x (`read_tokens`,
+  `fold_owned`: x is written back chunk by chunk): a loop that only reads x passes it
+  through, and XLA then copies x for the in-place pass.
 Loop outputs and accumulators start from `zeros_after(shape, dtype, dep)`, zeros made
 from a value the loop needs anyway: XLA shares a constant zero buffer between loops and
 schedules it (and one copy per loop) at the start of the program, all alive at once.
+16-bit buffers a loop slices are held as bits (`Bits16`).
 """
 
 from __future__ import annotations
@@ -169,8 +177,9 @@ def zeros_after(shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> jax.Array
 
 
 def fold_tokens(step, acc, inputs: tuple, n: int, axis: int, rows: int):
-    """The one chunk loop: acc = step(acc, start, size, *chunks) over chunks of `rows` of
-    the `n` tokens along `axis` of every input (a `fori_loop`), then the shorter tail."""
+    """acc = step(acc, start, size, *chunks) over chunks of `rows` of the `n` tokens along
+    `axis` of every input (a `fori_loop`), then the shorter tail: for accumulations (sums)
+    that read their inputs, which the tail leaves as they are."""
     count = n // rows
 
     def body(i, a):
