@@ -116,23 +116,19 @@ def aggregator_forward(
     num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
     chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
 
-    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D]
-    frame_pos = layers.RopeTables.from_positions(
-        jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None], config.head_dim, config.rope_freq)
-    global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
-
-    outputs = _layers(p, tokens, frame_pos, global_pos, config, b, shards, sorted(keep), saliency, (h, w))
+    geom = compression.Geometry(shards.frames, h, w, config.patch_start_idx)
+    outputs = _layers(p, tokens, saliency, geom, config, shards, sorted(keep))
     return outputs, patch_tokens, saliency
 
 
-def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> tuple[tuple[int, ...], ...]:
+def layer_groups(config: VGGTConfig, geom: compression.Geometry) -> tuple[tuple[int, ...], ...]:
     """Runs of consecutive layers whose global blocks share one static plan: each run is
     one `lax.scan`. A layer that computes a band's match joins the layers that reuse it
     (the scan computes the match at its first step and carries it). Dense: one run of
     every layer."""
     if config.compression.is_dense:
         return (tuple(range(config.depth)),)
-    plans = [_plan(config, i, frames, grid_hw) for i in range(config.depth)]
+    plans = [_plan(config, i, geom) for i in range(config.depth)]
     groups: list[list[int]] = []
     for i, plan in enumerate(plans):
         if groups and plans[groups[-1][-1]] == plan:
@@ -145,14 +141,13 @@ def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> t
     return tuple(tuple(g) for g in groups)
 
 
-def _plan(config: VGGTConfig, layer: int, frames: int, grid_hw: tuple[int, int]):
+def _plan(config: VGGTConfig, layer: int, geom: compression.Geometry):
     """The layer's static global plan with the layer index blanked (for comparison)."""
-    plan = compression.layer_plan(config.compression, layer, frames, *grid_hw, config.patch_start_idx)
-    return dataclasses.replace(plan, layer=0)
+    return dataclasses.replace(compression.layer_plan(config.compression, layer, geom), layer=0)
 
 
 def _storing(plan) -> bool:
-    return plan.kind == "merge" and plan.match == "compute" and plan.match_key is not None
+    return plan.kind == compression.LayerKind.MERGE and plan.match == "compute" and plan.match_key is not None
 
 
 def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
@@ -169,8 +164,10 @@ def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
     return slot, spare
 
 
-def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency, grid_hw):
-    """The 2 x depth blocks as one `lax.scan` per run of layers sharing a static global
+def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression.Geometry, config: VGGTConfig,
+            shards: FrameShards, keep: list[int]) -> dict[int, KeptLayer]:
+    """The 2 x depth blocks over tokens [B*S, P, C] (this device's S frames of the
+    sequence `geom`) as one `lax.scan` per run of layers sharing a static global
     plan (`layer_groups`: one run for dense, ~7 for `regime`). A scan compiles one body per
     run instead of one per layer (~10x less compile time) and, above all, confines every
     temporary of a layer to its loop body: unrolled layers let XLA hoist each layer's
@@ -182,15 +179,20 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
     (`kept_slots`), so the body is the same unconditional in-place write for every
     layer."""
     n, num_tokens, c = tokens.shape
-    s, frames = shards.local, shards.frames  # frames here, frames in the sequence
+    s = shards.local  # frames here (geom.frames: in the sequence)
+    b = n // s
     dtype = config.compute_dtype
+    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D]
+    frame_pos = layers.RopeTables.from_positions(
+        jnp.asarray(layers.patch_positions(geom.h, geom.w, geom.num_special))[None], config.head_dim,
+        config.rope_freq)
+    global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
     slot, spare = kept_slots(config.depth, keep)
     state = None
     if not config.compression.is_dense:
         # (the state is sequence-wide: every device holds all of it, built from every
         # frame's saliency, a few floats per patch)
-        state = compression.init_state(config, shards.gather(saliency, 1), frames, grid_hw)
-        state["shards"] = shards
+        state = compression.init_state(config.compression, shards.gather(saliency, 1), geom, shards)
 
     x = tokens.reshape(b, s * num_tokens, c)
     # Made from the tokens: a constant buffer would be allocated at the program start,
@@ -199,12 +201,11 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
     shape = (len(keep) + spare, b, s, num_tokens, c)
     kept_frame = chunks.zeros_after(shape, dtype, tokens)
     kept_global = chunks.zeros_after(shape, dtype, kept_frame)
-    for group in layer_groups(config, frames, grid_hw):
+    for group in layer_groups(config, geom):
         # a group that starts by computing its band's match carries it through its steps
-        band = _storing(_plan(config, group[0], frames, grid_hw)) if state is not None else False
+        plan0 = compression.layer_plan(config.compression, group[0], geom)
+        band = _storing(plan0) if state is not None else False
         last = group[-1]
-
-        plan0 = compression.layer_plan(config.compression, group[0], frames, *grid_hw, config.patch_start_idx)
         key = plan0.match_key
 
         def layer(carry, xs_i, group=group, band=band, last=last, key=key):
@@ -223,22 +224,22 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
                 x = compression.dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
             elif band and len(group) > 1:
                 # the plan of the reusing layers, told to compute the match at the first step
-                st = {**state, "match": {**state["match"], key: cached}}
-                x, after = compression.global_block(p_global, x, global_pos, last, config, st, fresh=i == 0)
-                cached = after["match"][key]
+                x, after = compression.global_block(p_global, x, global_pos, last, config,
+                                                    state.with_match(key, cached), fresh=i == 0)
+                cached = after.matches[key]
             else:
                 x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
                 if band:
-                    cached = after["match"][key]
+                    cached = after.matches[key]
             kept_global = jax.lax.dynamic_update_index_in_dim(kept_global,
                                                               x.reshape(b, s, num_tokens, c).astype(dtype), k, 0)
             return (x, kept_frame, kept_global, cached), None
 
         if config.remat:  # keep only the layer's inputs for the backward pass (config.remat)
             layer = jax.checkpoint(layer)
-        cached = compression.empty_match(plan0, b) if band else None
+        cached = compression.Match.zeros(plan0, b) if band else None
         xs = (jnp.arange(len(group)), jnp.asarray(slot[list(group)]))
         (x, kept_frame, kept_global, cached), _ = jax.lax.scan(layer, (x, kept_frame, kept_global, cached), xs)
         if band:
-            state = {**state, "match": {**state["match"], key: cached}}
+            state = state.with_match(key, cached)
     return {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}

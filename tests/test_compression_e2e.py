@@ -60,6 +60,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     # the float64 reference of the method in test_compression_block.py) must agree.
     from rvggt_jax import compression, layers
     from rvggt_jax.aggregator import aggregator_forward, layer_groups, special_tokens
+    from rvggt_jax.compression import Geometry
     from rvggt_jax.patch_embed import patch_embed
 
     params, config = tiny
@@ -67,7 +68,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     images = golden["images"]
     b, s, _, hh, ww = images.shape
     h, w = hh // 14, ww // 14
-    assert layer_groups(cfg, s, (h, w)) == (tuple(range(10)), (10, 11, 12, 13), (14, 15, 16, 17),
+    assert layer_groups(cfg, Geometry(s, h, w, cfg.patch_start_idx)) == (tuple(range(10)), (10, 11, 12, 13), (14, 15, 16, 17),
                                             tuple(range(18, 24)))
 
     def loop(p, images):
@@ -78,7 +79,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
         pos = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(h, w, 5))[None], cfg.head_dim,
                                                cfg.rope_freq)
         gpos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), pos)
-        state = compression.init_state(cfg, sal, s, (h, w))
+        state = compression.init_state(cfg.compression, sal, Geometry(s, h, w, cfg.patch_start_idx))
         out = []
         for i in range(cfg.depth):
             x = layers.block(p["frame_blocks"][str(i)], x.reshape(b * s, num, c), cfg.num_heads, pos, cfg.rope_freq)
