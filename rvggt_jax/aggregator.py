@@ -113,7 +113,6 @@ def aggregator_forward(
         tokens = jax.lax.dynamic_update_slice_in_dim(dino, special, 0, axis=1)
     else:
         tokens = jnp.concatenate([special, patch_tokens], axis=1)
-    num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
     chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
 
     geom = compression.Geometry(shards.frames, h, w, config.patch_start_idx)

@@ -92,7 +92,6 @@ def test_merge_unmerge_identity_and_group_outputs():
 
     cc = make_compression("regime", 24, merge_ratio=(0.7, 0.7, 0.7))
     plan = layer_plan(cc, 0, Geometry(S, H, W, NS))
-    part = partition(Geometry(S, H, W, NS), cc.dst_seed)
     match = merge_lib.compute_match(x, None, plan, 0)
     m = merge_lib.merge(x, match, plan.n_query)
     group = np.asarray(match.group)

@@ -105,9 +105,8 @@ def dense_global_block(p_block, x: jax.Array, pos, config, shards: FrameShards |
         real = shards.offset(per_frame) + jnp.arange(n) < shards.frames * per_frame
         mask = jnp.broadcast_to(jnp.where(real, 0.0, NEG_BIAS).astype(jnp.float32), (b, n))
     out = ring_attention(q, k, v, mask, shards)
-    proj = p_block["attn"]["proj"]
-    return layers.finish_block(p_block, x, lambda oc: layers.linear(proj, oc.reshape(oc.shape[:2] + (c,))), (out,),
-                               dtype=dtype)
+    # the block around the ring's output rows
+    return layers.run_block(p_block, x, lambda xc, oc: oc, (out,), dtype=dtype)
 
 
 def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State,
@@ -159,7 +158,8 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             log_g = log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
         kk, vv = _rows_kv(p_block, x, sel, pos, heads, dtype, shards, L)
         _check_shapes(plan, comp, n, kk, log_g)
-        return layers.attend_rows(p_block, x, (pos.cos, pos.sin), kk, vv, heads, log_g, dtype=dtype), state
+        attend = layers.attention_to(p_block, heads, kk, vv, log_g, dtype=dtype)
+        return layers.run_block(p_block, x, attend, (pos.cos, pos.sin), dtype=dtype), state
 
     # ---- merging layer -------------------------------------------------------------------
     def compute():
@@ -277,10 +277,14 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     proj = p_block["attn"]["proj"]
     out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, rows, c),),
                             bytes_per_row=b * c * 4 * 4)
+    # (the block's attention hook: merge -> attend -> project happened above, on the merged
+    # rows; the hook unmerges, each token taking its group's row)
     if not shards.sharded:
-        x = layers.finish_block(p_block, x, lambda gc: merge_lib.unmerge(out, gc), (group,), dtype=dtype)
+        x = layers.run_block(p_block, x, lambda xc, gc: merge_lib.unmerge(out, gc), (group,), dtype=dtype,
+                             projected=True)
     else:  # the merged rows travel around the devices, each token taking its group's
-        x = layers.finish_block(p_block, x, lambda rc: rc, (shards.ring_take(out, group),), dtype=dtype)
+        x = layers.run_block(p_block, x, lambda xc, rc: rc, (shards.ring_take(out, group),), dtype=dtype,
+                             projected=True)
     return x, state
 
 
