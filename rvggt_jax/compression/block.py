@@ -74,7 +74,7 @@ def init_state(comp: CompressionConfig, saliency: jax.Array | None, geom: Geomet
         if saliency.shape != (b, frames, geom.patches):
             raise ValueError(f"saliency must be [B, {frames}, {geom.patches}]; got {saliency.shape}")
         if per_frame > 0 and frames > 1:
-            _, top = jax.lax.top_k(saliency[:, 1:].astype(jnp.float32), per_frame)  # [B, S-1, kp]
+            _, top = jax.lax.top_k(saliency[:, 1:].astype(jnp.float32), per_frame)  # [B, S-1, per_frame]
             offsets = (jnp.arange(1, frames, dtype=jnp.int32) * L + geom.num_special)[None, :, None]
             protected_pos = (top.astype(jnp.int32) + offsets).reshape(b, -1)
             protected = jnp.zeros((b, N), bool).at[jnp.arange(b)[:, None], protected_pos].set(True)

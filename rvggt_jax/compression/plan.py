@@ -61,7 +61,7 @@ class LayerPlan:
     scope: str
     r_frame: int  # r per frame (frame scope)
     match_pairs: int  # src x dst similarity pairs evaluated when match == "compute"
-    protect_per_frame: int  # kp (saliency protection)
+    protect_per_frame: int  # protected patches per frame >= 1 (saliency protection)
     # The static index sets of a compressed layer (None for DENSE and FRAME), computed with
     # the plan so that the block reads them from it (not compared: they follow from the
     # fields above and the configuration).
