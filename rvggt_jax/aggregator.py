@@ -26,11 +26,12 @@ from rvggt_jax.patch_embed import patch_embed_tokens
 class KeptLayer:
     """The tokens of one kept aggregator layer, [B, S, P, 2C] float32 on demand, without a
     copy: its frame-block and global-block halves stay in the aggregator's stacked
-    [K + 1, B, S, P, C] buffers (compute dtype) and are sliced and concatenated per group
-    of frames where a head reads them (`frames`). At 1000 frames of VGGT-1B every full
-    copy of the four kept layers costs 17 GB in bfloat16."""
+    [K + 1, B, S, P, C] buffers (compute dtype; 16-bit ones as `chunks.Bits16`) and are
+    sliced and concatenated per group of frames where a head reads them (`frames`). At
+    1000 frames of VGGT-1B every full copy of the four kept layers costs 17 GB in
+    bfloat16."""
 
-    def __init__(self, frame_buf: jax.Array, global_buf: jax.Array, slot: int):
+    def __init__(self, frame_buf, global_buf, slot: int):
         self.frame_buf, self.global_buf, self.slot = frame_buf, global_buf, slot
 
     @property
@@ -41,27 +42,36 @@ class KeptLayer:
     def ndim(self) -> int:
         return 4
 
+    def _read(self, op, *index) -> jax.Array:
+        """op applied to both halves, concatenated along channels, float32."""
+        halves = [buf.read(op, *index) if isinstance(buf, chunks.Bits16) else op(buf, *index)
+                  for buf in (self.frame_buf, self.global_buf)]
+        # (the barrier keeps the float32 cast on the slices)
+        return jnp.concatenate(jax.lax.optimization_barrier(halves), axis=-1).astype(jnp.float32)
+
     def frames(self, start: jax.Array | int, count: int) -> jax.Array:
         """Frames [start, start + count) of the flattened B*S frames: [count, P, 2C] float32."""
-        def part(buf):
+        slot = self.slot
+
+        def part(buf, start):
+            # (buf: float32, or a 16-bit buffer's bits; plain slices, which also carry
+            # the derivatives of `chunks.Bits16`)
             flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])  # [K, B*S, P, C]
             # Frames first, then the slot, both dynamic slices: a static slot slice is
             # loop-invariant and XLA would hoist it (cast to float32) out of the heads'
             # loop, a float32 copy of every kept layer (34 GB at 1000 frames of VGGT-1B).
-            return chunks.dynamic_index(chunks.dynamic_slice(flat, start, count, 1), self.slot, 0)
+            frames = jax.lax.dynamic_slice_in_dim(flat, start, count, 1)
+            return jax.lax.dynamic_index_in_dim(frames, slot, 0, keepdims=False)
 
-        # (the barrier keeps the float32 cast on the slice too)
-        halves = jax.lax.optimization_barrier((part(self.frame_buf), part(self.global_buf)))
-        return jnp.concatenate(halves, axis=-1).astype(jnp.float32)
+        return self._read(part, start)
 
     def token(self, index: int) -> jax.Array:
         """One token of every frame: [B, S, 2C] float32 (index 0: the camera token)."""
-        return jnp.concatenate([self.frame_buf[self.slot, :, :, index], self.global_buf[self.slot, :, :, index]],
-                               axis=-1).astype(jnp.float32)
+        return self._read(lambda buf: buf[self.slot, :, :, index])
 
     def array(self) -> jax.Array:
         """The whole layer [B, S, P, 2C] float32 (a copy)."""
-        return jnp.concatenate([self.frame_buf[self.slot], self.global_buf[self.slot]], axis=-1).astype(jnp.float32)
+        return self._read(lambda buf: buf[self.slot])
 
     def tree_flatten(self):
         return (self.frame_buf, self.global_buf), self.slot
@@ -122,18 +132,16 @@ def aggregator_forward(
 
 def layer_groups(config: VGGTConfig, geom: compression.Geometry) -> tuple[tuple[int, ...], ...]:
     """Runs of consecutive layers whose global blocks share one static plan: each run is
-    one `lax.scan`. A layer that computes a band's match joins the layers that reuse it
-    (the scan computes the match at its first step and carries it). Dense: one run of
-    every layer."""
+    one `lax.scan`. Dense: one run of every layer. A band's first layer (it computes the
+    match) is a run apart from the layers that reuse it: inside their scan it would be a
+    `lax.cond` reading the residual stream, and XLA then copies the stream for the
+    in-place update after it (4 GB per layer at 1000 frames of VGGT-1B)."""
     if config.compression.is_dense:
         return (tuple(range(config.depth)),)
     plans = [_plan(config, i, geom) for i in range(config.depth)]
     groups: list[list[int]] = []
     for i, plan in enumerate(plans):
         if groups and plans[groups[-1][-1]] == plan:
-            groups[-1].append(i)
-        elif groups and plan.match == "reuse" and _storing(plans[groups[-1][0]]) and \
-                plans[groups[-1][0]] == dataclasses.replace(plan, match="compute"):
             groups[-1].append(i)
         else:
             groups.append([i])
@@ -198,16 +206,15 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
     # alive through the patch embed (chunks.zeros_after). Two distinct values: one buffer
     # for both would make XLA copy it inside the layer loop.
     shape = (len(keep) + spare, b, s, num_tokens, c)
-    kept_frame = chunks.zeros_after(shape, dtype, tokens)
-    kept_global = chunks.zeros_after(shape, dtype, kept_frame)
+    kept_frame = _kept_buffer(shape, dtype, tokens)
+    kept_global = _kept_buffer(shape, dtype, jax.tree.leaves(kept_frame)[0])
     for group in layer_groups(config, geom):
-        # a group that starts by computing its band's match carries it through its steps
+        # a group of layers that compute and store a band's match carries the last one out
         plan0 = compression.layer_plan(config.compression, group[0], geom)
         band = _storing(plan0) if state is not None else False
-        last = group[-1]
         key = plan0.match_key
 
-        def layer(carry, xs_i, group=group, band=band, last=last, key=key):
+        def layer(carry, xs_i, group=group, band=band, key=key):
             x, kept_frame, kept_global, cached = carry
             i, k = xs_i
             p_frame = layers.select_block(p["frame_blocks"], group, i)
@@ -216,22 +223,15 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
                              config.rope_freq, dtype=dtype)
             # (lax's dynamic update, not .at[k].set: the latter is a scatter that XLA
             # lowers with a bounds check, out of place: a copy of the kept buffer per step)
-            kept_frame = jax.lax.dynamic_update_index_in_dim(kept_frame, x.reshape(b, s, num_tokens, c).astype(dtype),
-                                                             k, 0)
+            kept_frame = _write_slot(kept_frame, x.reshape(b, s, num_tokens, c), k, dtype)
             x = x.reshape(b, s * num_tokens, c)
             if state is None:
                 x = compression.dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
-            elif band and len(group) > 1:
-                # the plan of the reusing layers, told to compute the match at the first step
-                x, after = compression.global_block(p_global, x, global_pos, last, config,
-                                                    state.with_match(key, cached), fresh=i == 0)
-                cached = after.matches[key]
             else:
                 x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
                 if band:
                     cached = after.matches[key]
-            kept_global = jax.lax.dynamic_update_index_in_dim(kept_global,
-                                                              x.reshape(b, s, num_tokens, c).astype(dtype), k, 0)
+            kept_global = _write_slot(kept_global, x.reshape(b, s, num_tokens, c), k, dtype)
             return (x, kept_frame, kept_global, cached), None
 
         if config.remat:  # keep only the layer's inputs for the backward pass (config.remat)
@@ -242,3 +242,18 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
         if band:
             state = state.with_match(key, cached)
     return {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
+
+
+def _kept_buffer(shape: tuple[int, ...], dtype, dep: jax.Array):
+    """Zeros for the kept layers' halves [K, B, S, P, C]: 16-bit ones as bits
+    (`chunks.Bits16`: the heads slice them in a loop without a copy of the whole)."""
+    if jnp.dtype(dtype).itemsize == 2:
+        return chunks.Bits16.zeros_after(shape, dtype, dep)
+    return chunks.zeros_after(shape, dtype, dep)
+
+
+def _write_slot(buf, x: jax.Array, k: jax.Array, dtype):
+    """buf with slot k set to x in the compute dtype (in place)."""
+    if isinstance(buf, chunks.Bits16):
+        return buf.update_index(x, k)
+    return jax.lax.dynamic_update_index_in_dim(buf, x.astype(dtype), k, 0)

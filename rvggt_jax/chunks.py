@@ -19,6 +19,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Bytes of the widest per-token intermediate (the MLP hidden layer [rows, 4C] in float32)
 # computed at once. Per-token work over a long sequence (1000 frames of VGGT-1B: 1M
@@ -64,6 +65,75 @@ def dynamic_slice(x: jax.Array, start, size: int, axis: int) -> jax.Array:
     if _is_16bit_float(x):
         return _via_bits(lambda t, s: jax.lax.dynamic_slice_in_dim(t, s, size, axis), x, start)
     return jax.lax.dynamic_slice_in_dim(x, start, size, axis)
+
+
+@jax.tree_util.register_pytree_node_class
+class Bits16:
+    """A 16-bit float buffer held as its uint16 bits, for buffers a loop slices.
+
+    `dynamic_slice` above views a 16-bit operand as bits at the slice; for a
+    loop-invariant operand XLA hoists that view out of the loop, a copy of the whole
+    buffer (8.5 GB for the kept layers' halves at 1000 frames of VGGT-1B, at the heads).
+    Held as bits from the start, nothing is converted but what is written and read.
+
+    Derivatives: bits have none, so the buffer carries a `shadow` of its float dtype
+    whose value is never used: writes and reads send their tangents through it (custom
+    JVPs). In a forward pass without derivatives the shadow is dead and XLA removes it."""
+
+    def __init__(self, bits: jax.Array, shadow: jax.Array):
+        self.bits, self.shadow = bits, shadow
+
+    @classmethod
+    def zeros_after(cls, shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> "Bits16":
+        return cls(zeros_after(shape, jnp.uint16, dep), zeros_after(shape, dtype, dep))
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.bits.shape
+
+    @property
+    def dtype(self):
+        return self.shadow.dtype
+
+    def update_index(self, x: jax.Array, index) -> "Bits16":
+        """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
+        return Bits16(*_store_bits(self.bits, self.shadow, x.astype(self.dtype), index))
+
+    def read(self, op, *index) -> jax.Array:
+        """op(buffer, *index) (slicing ops only) in the float dtype."""
+        return _load_bits(op, self.bits, self.shadow, *index)
+
+    def tree_flatten(self):
+        return (self.bits, self.shadow), None
+
+    @classmethod
+    def tree_unflatten(cls, _, children):
+        return cls(*children)
+
+
+@jax.custom_jvp
+def _store_bits(bits, shadow, x, index):
+    return jax.lax.dynamic_update_index_in_dim(bits, jax.lax.bitcast_convert_type(x, jnp.uint16), index, 0), shadow
+
+
+@_store_bits.defjvp
+def _store_bits_jvp(primals, tangents):
+    bits, shadow, x, index = primals
+    _, shadow_dot, x_dot, _ = tangents
+    out = _store_bits(bits, shadow, x, index)
+    no_tangent = np.zeros(bits.shape, dtype=jax.dtypes.float0)
+    return out, (no_tangent, jax.lax.dynamic_update_index_in_dim(shadow_dot, x_dot.astype(shadow.dtype), index, 0))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _load_bits(op, bits, shadow, *index):
+    return jax.lax.bitcast_convert_type(op(bits, *index), shadow.dtype)
+
+
+@_load_bits.defjvp
+def _load_bits_jvp(op, primals, tangents):
+    bits, shadow, *index = primals
+    return _load_bits(op, bits, shadow, *index), op(tangents[1], *index)
 
 
 def take(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
@@ -113,6 +183,68 @@ def fold_tokens(step, acc, inputs: tuple, n: int, axis: int, rows: int):
     return acc
 
 
+def even_chunks(n: int, rows: int, multiple: int = 1) -> tuple[int, int]:
+    """(count, rows') for covering n rows with chunks of at most about `rows`: the fewest
+    chunks, each ceil(n / count) rows rounded up to `multiple`, so that the chunks
+    overlap by less than `multiple` rows each instead of leaving a short tail."""
+    count = -(-n // rows)
+    size = -(-n // count)
+    return count, min(n, -(-size // multiple) * multiple)
+
+
+def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, reader=None):
+    """The in-place chunk loop of `map_tokens` and `update_tokens`: `count` chunks of
+    `rows` (`even_chunks`), chunk i written at min(i * rows, n - rows). Where the last
+    chunk overlaps the one before (n not a multiple of rows), the overlap keeps what is
+    already written (the rows are masked), so every row is computed once from its own
+    inputs. Why not a loop plus a shorter tail chunk: the tail is a second update of the
+    loop's result outside the loop, and XLA then copies the whole buffer (the residual
+    stream, 4 GB at 1000 frames of VGGT-1B) for each consumer of the result.
+
+    fn(chunk of reader(acc) or None, *input_chunks) -> the chunk's new values (a pytree
+    like acc)."""
+    count, rows = even_chunks(n, rows, multiple)
+    overlap = count * rows != n
+
+    def body(i, a):
+        start = jnp.minimum(i * rows, n - rows)
+        def chunk_of(tree):
+            return jax.tree.map(lambda t: dynamic_slice(t, start, rows, axis), tree)
+
+        res = fn(None if reader is None else chunk_of(reader(a)), *chunk_of(inputs))
+        old = chunk_of(a) if overlap else None
+        if overlap:  # the rows before i * rows are done (only in the last chunk)
+            fresh = jax.lax.broadcasted_iota(jnp.int32, (rows,), 0) >= i * rows - start
+
+            def keep(r, o):
+                return jnp.where(fresh.reshape((1,) * axis + (rows,) + (1,) * (r.ndim - axis - 1)), r, o)
+
+            res = jax.tree.map(keep, res, old)
+        return jax.tree.map(lambda t, r: jax.lax.dynamic_update_slice_in_dim(t, r, start, axis), a, res)
+
+    return jax.lax.fori_loop(0, count, body, acc)
+
+
+def fold_owned(step, x: jax.Array, acc, inputs: tuple, n: int, rows: int):
+    """(x, acc) with acc = step(acc, *input_chunks, x_chunk) over chunks of `rows` tokens
+    (axis 1) of the inputs and x, as `fold_tokens`, in a loop that owns x: each chunk of x
+    is written back unchanged (made from the step's result, so XLA keeps the write), for
+    the reason given in `read_tokens`. The shorter tail only reads x."""
+    count = n // rows
+
+    def body(i, carry):
+        xs, a = carry
+        xc = dynamic_slice(xs, i * rows, rows, 1)
+        a = step(a, *[dynamic_slice(t, i * rows, rows, 1) for t in inputs], xc)
+        back = xc + sum(zeros_after((), xc.dtype, t) for t in jax.tree.leaves(a))
+        return jax.lax.dynamic_update_slice_in_dim(xs, back, i * rows, 1), a
+
+    x, acc = jax.lax.fori_loop(0, count, body, (x, acc))
+    if count * rows < n:
+        acc = step(acc, *[jax.lax.slice_in_dim(t, count * rows, n, axis=1) for t in (*inputs, x)])
+    return x, acc
+
+
 def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_per_row: int = 0,
                dep: jax.Array | None = None, multiple: int = 8):
     """`fn(*chunks) -> pytree` over chunks of `rows` tokens along `axis` of every input,
@@ -123,32 +255,50 @@ def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_
     rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
     if rows >= n:
         return fn(*inputs)
-    spec = jax.eval_shape(lambda *c: fn(*c), *[dynamic_slice(t, 0, rows, axis) for t in inputs])
+    _, size = even_chunks(n, rows, multiple)
+    spec = jax.eval_shape(lambda *c: fn(*c), *[dynamic_slice(t, 0, size, axis) for t in inputs])
 
     def full(o):
         shape = list(o.shape)
         shape[axis] = n
         return zeros_after(tuple(shape), o.dtype, inputs[0] if dep is None else dep)
 
-    def step(acc, start, size, *chunk):
-        return jax.tree.map(lambda a, r: jax.lax.dynamic_update_slice_in_dim(a, r, start, axis), acc, fn(*chunk))
+    return _sweep(lambda _, *c: fn(*c), jax.tree.map(full, spec), inputs, n, axis, rows, multiple)
 
-    return fold_tokens(step, jax.tree.map(full, spec), inputs, n, axis, rows)
+
+def read_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,
+                bytes_per_row: int = 0, multiple: int = 8):
+    """(x, fn(x_chunk, *input_chunks) stitched as in `map_tokens`), where the loop also
+    owns x: each chunk of x is written back unchanged. A loop that only reads x passes it
+    through, and XLA then copies x for the next loop that updates it in place (4 GB per
+    layer at 1000 frames of VGGT-1B); owning it keeps one buffer from loop to loop."""
+    n = x.shape[axis]
+    rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
+    if rows >= n:
+        return x, fn(x, *inputs)
+    _, size = even_chunks(n, rows, multiple)
+    spec = jax.eval_shape(lambda *c: fn(*c), *[dynamic_slice(t, 0, size, axis) for t in (x, *inputs)])
+
+    def full(o):
+        shape = list(o.shape)
+        shape[axis] = n
+        return zeros_after(tuple(shape), o.dtype, x)
+
+    def both(xc, *c):
+        out = fn(xc, *c)
+        # written back made from the results, so that XLA cannot drop the write
+        return xc + sum(zeros_after((), xc.dtype, o) for o in jax.tree.leaves(out)), out
+
+    return _sweep(both, (x, jax.tree.map(full, spec)), inputs, n, axis, rows, multiple, lambda a: a[0])
 
 
 def update_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,
                   bytes_per_row: int = 0, multiple: int = 8) -> jax.Array:
     """x with every chunk of `rows` tokens along `axis` replaced by `fn(x_chunk,
     *input_chunks)` (same shape and dtype), in place: the residual stream is updated
-    without a second copy."""
+    without a second copy (x's chunk is read from the loop's own buffer)."""
     n = x.shape[axis]
     rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
     if rows >= n:
         return fn(x, *inputs)
-
-    def step(acc, start, size, *chunk):
-        # x's chunk is read from the loop's own buffer, which is updated in place
-        res = fn(dynamic_slice(acc, start, size, axis), *chunk)
-        return jax.lax.dynamic_update_slice_in_dim(acc, res, start, axis)
-
-    return fold_tokens(step, x, inputs, n, axis, rows)
+    return _sweep(fn, x, inputs, n, axis, rows, multiple, lambda a: a)

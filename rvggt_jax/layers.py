@@ -270,8 +270,8 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
             return run_block(p, x, attend, tables, **whole)
         return run_block(p, x, lambda xc: attend(xc, *tables), **whole)
 
-    k, v = map_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), (x, *tables),
-                      bytes_per_row=b * c * 4 * 2 + c * 4)
+    x, (k, v) = chunks.read_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), x, tables,
+                                   bytes_per_row=b * c * 4 * 2 + c * 4)
     return run_block(p, x, attention_to(p, num_heads, k, v, None, eps, dtype), tables, eps=eps, dtype=dtype)
 
 

@@ -92,3 +92,27 @@ def test_16bit_bit_view_slices_pass_gradients(dtype):
         want = jax.grad(lambda t: jnp.sum(plain(t) * w[:, :plain(t).shape[1]]))(x32)
         assert np.any(np.asarray(want))
         np.testing.assert_array_equal(np.asarray(g.astype(jnp.float32)), np.asarray(want))  # small integers: exact
+
+
+@pytest.mark.parametrize("dtype", ["bfloat16", "float16"])
+def test_bits16_buffer_passes_gradients(dtype):
+    """A 16-bit buffer held as bits (chunks.Bits16, the aggregator's kept layers): writes
+    and reads must pass the gradients of the plain float ops (through its shadow)."""
+    x32 = jnp.asarray(np.random.default_rng(4).standard_normal((3, 2, 4)), jnp.float32)
+    w = jnp.arange(1.0, 9.0).reshape(2, 4)
+
+    def ours(t):
+        buf = chunks.Bits16.zeros_after((3, 2, 4), dtype, t)
+        for k in range(3):
+            buf = buf.update_index(t[k] * (k + 1), jnp.int32(k))
+        return buf.read(lambda b, i: jax.lax.dynamic_index_in_dim(b, i, 0, keepdims=False), jnp.int32(1))
+
+    def plain(t):
+        return (t[1] * 2).astype(dtype)
+
+    x = x32.astype(dtype)
+    np.testing.assert_array_equal(np.asarray(ours(x).astype(jnp.float32)), np.asarray(plain(x).astype(jnp.float32)))
+    g = jax.jit(jax.grad(lambda t: jnp.sum(ours(t).astype(jnp.float32) * w)))(x)
+    want = jax.grad(lambda t: jnp.sum(plain(t).astype(jnp.float32) * w))(x)
+    assert np.any(np.asarray(want, np.float32))
+    np.testing.assert_array_equal(np.asarray(g, np.float32), np.asarray(want, np.float32))

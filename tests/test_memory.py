@@ -54,3 +54,21 @@ def test_report_is_consistent(plans):
 def test_bad_sizes_are_named(frames, height, width):
     with pytest.raises(InputError):
         rvggt_jax.memory_report(dataclasses.replace(BASE), frames, height, width)
+
+
+def test_kept_layers_are_never_converted_whole(plans):
+    # bfloat16 kept layers are held as bits (chunks.Bits16) and the heads slice them per
+    # group of frames: no op of the compiled forward may convert a whole kept buffer [K,
+    # B, S, P, C] (a loop-invariant view XLA hoists out of the heads' loop: 8.5 GB per
+    # buffer at 1000 frames of VGGT-1B, before Bits16)
+    import math
+    import re
+
+    cfg = BASE.with_compression("dense")
+    keep = len(set(cfg.needed_layers(False)))
+    whole = keep * S * (cfg.patch_start_idx + (H // 14) * (W // 14)) * cfg.embed_dim
+    text = plans["dense", "bfloat16"].compiled.as_text()
+    converts = re.findall(r"= \w+\[([\d,]*)\]\{[\d,]*\} (?:bitcast-)?convert\(", text)
+    assert converts  # the pattern still matches XLA's text
+    sizes = [math.prod(int(d) for d in dims.split(",") if d) for dims in converts]
+    assert whole not in sizes, f"a whole kept buffer ({whole} values) is converted"

@@ -109,8 +109,8 @@ def dense_global_block(p_block, x: jax.Array, pos, config, shards: FrameShards |
     return layers.run_block(p_block, x, lambda xc, oc: oc, (out,), dtype=dtype)
 
 
-def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State,
-                 fresh: jax.Array | None = None) -> tuple[jax.Array, State]:
+def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, state: State
+                 ) -> tuple[jax.Array, State]:
     """One global block under the configured compression.
 
     p_block: one upstream Block's params; x [B, N, C] (the float32 residual stream),
@@ -119,10 +119,7 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     (heads, RoPE, compute dtype, compression). Attention and MLP run in
     `config.compute_dtype`. Returns (x [B, N, C], state), the state with this layer's
     match (and K/V slots) cached when its plan stores them.
-
-    `fresh` (a traced bool, for a `lax.scan` over a band): a layer whose plan reuses the
-    band's match computes it instead when `fresh` is true (the band's first layer), and
-    returns it in the state for the next step."""
+    """
     comp = config.compression
     geom, shards = state.geometry, state.shards
     plan = layer_plan(comp, layer, geom)
@@ -172,10 +169,6 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         if plan.match_key not in state.matches:
             raise ValueError(f"global block {layer} reuses the match of {plan.match_key}, which is not cached")
         match = state.matches[plan.match_key]
-        if fresh is not None:
-            match = jax.lax.cond(fresh, compute, lambda: match)
-            state = state.with_match(plan.match_key, match)
-            state = state._replace(kv={k: v for k, v in state.kv.items() if k[0] != plan.match_key})
     else:
         match = compute()
         if plan.match_key is not None:
@@ -199,7 +192,10 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     def merged(parts, after=None):
         fn = layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
         if not shards.sharded:
-            return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2)[0]
+            # each sum made after the previous mean; the loops own x (see chunks.read_tokens)
+            xo, mean = merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
+                                           dep=after, owned=True)
+            return xo, mean
         # one of q, k, v at a time: each projected after the previous one is summed
         xs = x if after is None else jax.lax.optimization_barrier((x, after))[0]
         vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
@@ -207,9 +203,14 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         sums = shards.ring_sum_scatter(lambda block: merge_lib.block_sums(vals, group - block * rows, rows))
         return (sums / sizes_own[..., None, None]).astype(vals.dtype)
 
-    qm = merged("q")  # [B, rows, H, D]: this device's merged rows
-    km = merged("k", qm)
-    vm = merged("v", km)
+    if shards.sharded:
+        qm = merged("q")  # [B, rows, H, D]: this device's merged rows
+        km = merged("k", qm)
+        vm = merged("v", km)
+    else:
+        x, qm = merged("q", match.group)
+        x, km = merged("k", qm)
+        x, vm = merged("v", km)
     # Over devices, the keys are every device's merged rows, passed around (those the
     # layer does not keep masked out: each device holds two devices' rows at a time
     # instead of every kept row)

@@ -109,11 +109,18 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
         first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
         return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
 
+    def unit_rows(idx):
+        # [B, M, C] unit rows in `dtype`, gathered, transformed and normalised a chunk at a
+        # time: the float32 rows of all src (3 GB at 1000 frames of VGGT-1B) never exist
+        per_row = b * metric.shape[-1] * 4 * 3
+        return chunks.map_tokens(lambda i: _unit(chunks.take(metric, i[0], axis=1), dtype), (idx[None],),
+                                 bytes_per_row=per_row, dep=metric)
+
     # the unit src rows once (a [G*Na, C] copy in the compute dtype: gathering them block
     # by block inside the loop is 2x slower), then blocks of src rows against the dst
-    src = _unit(chunks.take(metric, src_idx.reshape(-1), axis=1), dtype)
+    src = unit_rows(src_idx.reshape(-1))
     if g == 1:
-        dst = _unit(chunks.take(metric, dst_idx[0], axis=1), dtype)  # [B, Nb, C] (a device's: [B, Nb', C])
+        dst = unit_rows(dst_idx[0])  # [B, Nb, C] (a device's: [B, Nb', C])
         rows = chunks.row_chunks(na, b * dst.shape[1] * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
         rows = min(rows, chunk) if chunk > 0 else rows
         if not sharded:
@@ -234,20 +241,27 @@ def merge(x: jax.Array, match: Match, n_query: int) -> jax.Array:
     return merge_map(lambda xc: (xc,), (x,), match, n_query, x.shape[-1] * 4)[0]
 
 
-def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int) -> tuple:
+def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int, dep: jax.Array | None = None,
+              owned: bool = False) -> tuple:
     """Group means of per-token values that are never formed for the whole sequence:
     `fn(*chunks) -> (values [B, r, ...], ...)` over token chunks of the inputs (axis 1),
     each chunk added into float32 sums [B, N_m, ...] at its tokens' groups, then divided
     by the group sizes. Returns the means [B, N_m, ...] in each value's dtype. With `fn`
-    the Q/K/V projection of a block, merging needs no full-sequence Q, K or V."""
+    the Q/K/V projection of a block, merging needs no full-sequence Q, K or V.
+
+    dep: the float32 sums are made after this value (default the first input): one
+    merge_map after another then holds one set of sums at a time. owned: returns
+    (inputs[0], means...), the loop owning the first input (`chunks.read_tokens`: no copy
+    of the residual stream for an in-place pass after it)."""
     x0 = inputs[0]
     b, n = x0.shape[:2]
     offsets = (jnp.arange(b, dtype=jnp.int32) * n_query)[:, None]
     rows = chunks.row_chunks(n, b * bytes_per_row)
     spec = jax.eval_shape(fn, *[chunks.dynamic_slice(t, 0, min(rows, n), 1) for t in inputs])
-    sums = tuple(chunks.zeros_after((b * n_query,) + o.shape[2:], jnp.float32, x0) for o in spec)
+    sums = tuple(chunks.zeros_after((b * n_query,) + o.shape[2:], jnp.float32, x0 if dep is None else dep)
+                 for o in spec)
 
-    def add(acc, start, size, group, *chunk):
+    def add(acc, group, *chunk):
         ids = (group + offsets).reshape(-1)
         vals = fn(*chunk)
         return tuple(a.at[ids].add(v.reshape((-1,) + v.shape[2:]).astype(jnp.float32), mode="promise_in_bounds")
@@ -255,12 +269,16 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int)
 
     group = match.group
     if rows >= n:
-        sums = add(sums, 0, n, group, *inputs)
+        sums = add(sums, group, *inputs)
+    elif owned:
+        x0, sums = chunks.fold_owned(lambda acc, g, *c: add(acc, g, c[-1], *c[:-1]), x0, sums,
+                                     (group, *inputs[1:]), n, rows)
     else:
-        sums = chunks.fold_tokens(add, sums, (group, *inputs), n, 1, rows)
+        sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
     sizes = match.sizes
-    return tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype) for a, o in zip(sums, spec))
+    means = tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype) for a, o in zip(sums, spec))
+    return (x0, *means) if owned else means
 
 
 def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
