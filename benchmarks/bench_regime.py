@@ -82,7 +82,8 @@ def trunk_forward(params, tokens: jax.Array, saliency: jax.Array, config: VGGTCo
     h, w = grid_hw
     frame_pos = jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None]
     global_pos = jnp.tile(frame_pos, (1, s, 1))
-    state = None if config.compression.is_dense else compression.init_state(config, saliency, s, grid_hw)
+    geom = compression.Geometry(s, h, w, config.patch_start_idx)
+    state = None if config.compression.is_dense else compression.init_state(config.compression, saliency, geom)
     x = tokens.reshape(b * s, p, c)
     out = {}
     for i in range(config.depth):
@@ -108,21 +109,20 @@ def kv_fill(config: VGGTConfig, tokens, saliency, params, grid_hw) -> float:
         return 1.0
     from rvggt_jax.compression import kv as kv_lib
     from rvggt_jax.compression import merge as merge_lib
-    from rvggt_jax.compression.partition import partition
     from rvggt_jax.compression.plan import layer_plan
 
     h, w = grid_hw
     b, s, p, c = tokens.shape
     ns = config.patch_start_idx
     cc = config.compression
-    plans = [layer_plan(cc, i, s, h, w, ns) for i in range(config.depth)]
+    geom = compression.Geometry(s, h, w, ns)
+    plans = [layer_plan(cc, i, geom) for i in range(config.depth)]
 
     @jax.jit
     def run(params, tokens, saliency):
         frame_pos = jnp.asarray(layers.patch_positions(h, w, ns))[None]
         global_pos = jnp.tile(frame_pos, (1, s, 1))
-        state = compression.init_state(config, saliency, s, grid_hw)
-        part = partition(s, h, w, ns, cc.dst_seed)
+        state = compression.init_state(cc, saliency, geom)
         x = tokens.reshape(b * s, p, c)
         filled = []
         for i, plan in enumerate(plans):
@@ -132,13 +132,14 @@ def kv_fill(config: VGGTConfig, tokens, saliency, params, grid_hw) -> float:
             dyn = plan.kind == "merge" and plan.kv_mode == "select"
             if dyn and plan.match_key is None:
                 metric = x if plan.metric == "input" else layers.layer_norm(pg["norm1"], x)
-                prot = state.get("protected")
+                prot = state.protected
+                src_pos = plan.partition.src_pos
                 match = merge_lib.compute_match(
-                    metric, None if prot is None else jnp.take(prot, part.src_pos, axis=1), part, plan, cc.match_chunk)
-                _, ok = kv_lib.dynamic_slots(plan, part, cc, match, prot, ns, h, w)
+                    metric, None if prot is None else jnp.take(prot, src_pos, axis=1), plan, cc.match_chunk)
+                _, ok = kv_lib.dynamic_slots(plan, cc, match, prot)
             x, state = compression.global_block(pg, x, global_pos, i, config, state)
             if dyn and plan.match_key is not None:
-                ok = state["kv"][f"{plan.match_key}|{plan.tile}"][1]
+                ok = state.kv[plan.match_key, plan.tile].valid
             if dyn:
                 filled.append(plan.n_fixed + jnp.sum(ok) / b)
             elif plan.kind in ("merge", "kv"):

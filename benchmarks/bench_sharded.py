@@ -50,7 +50,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rvggt_jax import VGGTConfig  # noqa: E402
-from rvggt_jax.compression import layer_plan  # noqa: E402
+from rvggt_jax.compression import Geometry, layer_plan  # noqa: E402
 from rvggt_jax.memory import memory_report  # noqa: E402
 from rvggt_jax.sharded import frames_mesh  # noqa: E402
 
@@ -92,7 +92,7 @@ def layer_exchange(cfg: VGGTConfig, layer: int, frames: int, h: int, w: int, dev
     allreduce = 2 * (n - 1) / n
     if cfg.compression.is_dense:
         return {"kind": "dense", "K/V ring": 2 * (n - 1) * (-(-tokens // n)) * c * itemsize}
-    p = layer_plan(cfg.compression, layer, frames, h, w, cfg.patch_start_idx)
+    p = layer_plan(cfg.compression, layer, Geometry(frames, h, w, cfg.patch_start_idx))
     if p.kind == "dense":
         return {"kind": "dense", "K/V ring": 2 * (n - 1) * (-(-tokens // n)) * c * itemsize}
     if p.kind == "frame":

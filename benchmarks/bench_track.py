@@ -114,7 +114,8 @@ def main(argv=None) -> None:
     hh, ww = args.height, args.width
     for n in args.num_queries:
         q = jnp.asarray(rng.uniform([0, 0], [ww - 1, hh - 1], size=(1, n, 2)).astype(np.float32))
-        fn = jax.jit(lambda p, a, im, qq: track_head(p, a, im, config.patch_start_idx, qq, config))
+        grid = config.token_grid(images.shape[-2:])
+        fn = jax.jit(lambda p, a, im, qq: track_head(p, a, config.track_head_config, grid, qq))
         t0 = time.perf_counter()
         comp = fn.lower(params["track_head"], aggregated, images, q).compile()
         compile_s = time.perf_counter() - t0

@@ -123,19 +123,14 @@ def aggregator_forward(
         tokens = jax.lax.dynamic_update_slice_in_dim(dino, special, 0, axis=1)
     else:
         tokens = jnp.concatenate([special, patch_tokens], axis=1)
-    num_tokens = tokens.shape[1]  # P = 1 + registers + h*w
     chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
 
-    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D]
-    frame_pos = layers.RopeTables.from_positions(
-        jnp.asarray(layers.patch_positions(h, w, config.patch_start_idx))[None], config.head_dim, config.rope_freq)
-    global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
-
-    outputs = _layers(p, tokens, frame_pos, global_pos, config, b, shards, sorted(keep), saliency, (h, w))
+    geom = compression.Geometry(shards.frames, h, w, config.patch_start_idx)
+    outputs = _layers(p, tokens, saliency, geom, config, shards, sorted(keep))
     return outputs, patch_tokens, saliency
 
 
-def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> tuple[tuple[int, ...], ...]:
+def layer_groups(config: VGGTConfig, geom: compression.Geometry) -> tuple[tuple[int, ...], ...]:
     """Runs of consecutive layers whose global blocks share one static plan: each run is
     one `lax.scan`. Dense: one run of every layer. A band's first layer (it computes the
     match) is a run apart from the layers that reuse it: inside their scan it would be a
@@ -143,7 +138,7 @@ def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> t
     in-place update after it (4 GB per layer at 1000 frames of VGGT-1B)."""
     if config.compression.is_dense:
         return (tuple(range(config.depth)),)
-    plans = [_plan(config, i, frames, grid_hw) for i in range(config.depth)]
+    plans = [_plan(config, i, geom) for i in range(config.depth)]
     groups: list[list[int]] = []
     for i, plan in enumerate(plans):
         if groups and plans[groups[-1][-1]] == plan:
@@ -153,14 +148,13 @@ def layer_groups(config: VGGTConfig, frames: int, grid_hw: tuple[int, int]) -> t
     return tuple(tuple(g) for g in groups)
 
 
-def _plan(config: VGGTConfig, layer: int, frames: int, grid_hw: tuple[int, int]):
+def _plan(config: VGGTConfig, layer: int, geom: compression.Geometry):
     """The layer's static global plan with the layer index blanked (for comparison)."""
-    plan = compression.layer_plan(config.compression, layer, frames, *grid_hw, config.patch_start_idx)
-    return dataclasses.replace(plan, layer=0)
+    return dataclasses.replace(compression.layer_plan(config.compression, layer, geom), layer=0)
 
 
 def _storing(plan) -> bool:
-    return plan.kind == "merge" and plan.match == "compute" and plan.match_key is not None
+    return plan.kind == compression.LayerKind.MERGE and plan.match == "compute" and plan.match_key is not None
 
 
 def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
@@ -177,8 +171,10 @@ def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
     return slot, spare
 
 
-def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency, grid_hw):
-    """The 2 x depth blocks as one `lax.scan` per run of layers sharing a static global
+def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression.Geometry, config: VGGTConfig,
+            shards: FrameShards, keep: list[int]) -> dict[int, KeptLayer]:
+    """The 2 x depth blocks over tokens [B*S, P, C] (this device's S frames of the
+    sequence `geom`) as one `lax.scan` per run of layers sharing a static global
     plan (`layer_groups`: one run for dense, ~7 for `regime`). A scan compiles one body per
     run instead of one per layer (~10x less compile time) and, above all, confines every
     temporary of a layer to its loop body: unrolled layers let XLA hoist each layer's
@@ -190,15 +186,20 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
     (`kept_slots`), so the body is the same unconditional in-place write for every
     layer."""
     n, num_tokens, c = tokens.shape
-    s, frames = shards.local, shards.frames  # frames here, frames in the sequence
+    s = shards.local  # frames here (geom.frames: in the sequence)
+    b = n // s
     dtype = config.compute_dtype
+    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D]
+    frame_pos = layers.RopeTables.from_positions(
+        jnp.asarray(layers.patch_positions(geom.h, geom.w, geom.num_special))[None], config.head_dim,
+        config.rope_freq)
+    global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
     slot, spare = kept_slots(config.depth, keep)
     state = None
     if not config.compression.is_dense:
         # (the state is sequence-wide: every device holds all of it, built from every
         # frame's saliency, a few floats per patch)
-        state = compression.init_state(config, shards.gather(saliency, 1), frames, grid_hw)
-        state["shards"] = shards
+        state = compression.init_state(config.compression, shards.gather(saliency, 1), geom, shards)
 
     x = tokens.reshape(b, s * num_tokens, c)
     # Made from the tokens: a constant buffer would be allocated at the program start,
@@ -207,11 +208,10 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
     shape = (len(keep) + spare, b, s, num_tokens, c)
     kept_frame = _kept_buffer(shape, dtype, tokens)
     kept_global = _kept_buffer(shape, dtype, jax.tree.leaves(kept_frame)[0])
-    for group in layer_groups(config, frames, grid_hw):
+    for group in layer_groups(config, geom):
         # a group of layers that compute and store a band's match carries the last one out
-        band = _storing(_plan(config, group[0], frames, grid_hw)) if state is not None else False
-
-        plan0 = compression.layer_plan(config.compression, group[0], frames, *grid_hw, config.patch_start_idx)
+        plan0 = compression.layer_plan(config.compression, group[0], geom)
+        band = _storing(plan0) if state is not None else False
         key = plan0.match_key
 
         def layer(carry, xs_i, group=group, band=band, key=key):
@@ -230,17 +230,17 @@ def _layers(p, tokens, frame_pos, global_pos, config, b, shards, keep, saliency,
             else:
                 x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
                 if band:
-                    cached = after["match"][key]
+                    cached = after.matches[key]
             kept_global = _write_slot(kept_global, x.reshape(b, s, num_tokens, c), k, dtype)
             return (x, kept_frame, kept_global, cached), None
 
         if config.remat:  # keep only the layer's inputs for the backward pass (config.remat)
             layer = jax.checkpoint(layer)
-        cached = compression.empty_match(plan0, b) if band else None
+        cached = compression.Match.zeros(plan0, b) if band else None
         xs = (jnp.arange(len(group)), jnp.asarray(slot[list(group)]))
         (x, kept_frame, kept_global, cached), _ = jax.lax.scan(layer, (x, kept_frame, kept_global, cached), xs)
         if band:
-            state = {**state, "match": {**state["match"], key: cached}}
+            state = state.with_match(key, cached)
     return {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
 
 

@@ -14,7 +14,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +23,22 @@ from rvggt_jax.compression.config import CompressionConfig, make_compression
 
 # Compute dtypes of the aggregator.
 DTYPES = ("float32", "bfloat16")
+
+
+class TokenGrid(NamedTuple):
+    """How the aggregator's tokens of a frame sit on its image: what a head needs besides
+    its own sub-config (`VGGTConfig.token_grid`). Every head is called as
+    `head(params, aggregated, head_config, grid, ...)` (the camera head, which reads the
+    camera token alone, without the grid)."""
+
+    image_hw: tuple[int, int]  # (H, W) of the network input
+    patch_size: int
+    patch_start_idx: int  # camera + register tokens before the patches
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        """(h, w) of the patch grid."""
+        return self.image_hw[0] // self.patch_size, self.image_hw[1] // self.patch_size
 
 
 @dataclass(frozen=True)
@@ -129,6 +145,17 @@ class VGGTConfig:
     @property
     def track_layer_idx(self) -> tuple[int, ...]:
         return self.track_head.intermediate_layer_idx or self.dpt_head.intermediate_layer_idx
+
+    def token_grid(self, image_hw: tuple[int, int]) -> TokenGrid:
+        """The heads' view of images of `image_hw` = (H, W)."""
+        return TokenGrid((int(image_hw[0]), int(image_hw[1])), self.patch_size, self.patch_start_idx)
+
+    @property
+    def track_head_config(self) -> TrackHeadConfig:
+        """`track_head` with its DPT extractor's defaults (None: the DPT head's) filled in:
+        the sub-config `heads.track.track_head` takes."""
+        return replace(self.track_head, out_channels=self.track_out_channels,
+                       intermediate_layer_idx=self.track_layer_idx)
 
     def needed_layers(self, with_track: bool) -> tuple[int, ...]:
         """Aggregator layers some head reads; only these outputs are kept alive."""

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from rvggt_jax.compression.config import LayerKind
+from rvggt_jax.compression.partition import Geometry
 from rvggt_jax.compression.plan import layer_plan, padded_head_dim
 from rvggt_jax.config import VGGTConfig
 
@@ -73,8 +75,8 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
     d = c // heads
     hidden = int(c * config.mlp_ratio)
     comp = config.compression
-    L = num_special + h * w
-    N = frames * L
+    geom = Geometry(frames, h, w, num_special)
+    L, N = geom.per_frame, geom.tokens
 
     dense_global_attn = _attn_flops(N, N, heads, d, d)
     dense_global = _block_linear_flops(N, N, N, c, hidden) + dense_global_attn
@@ -82,13 +84,13 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
 
     rows = []
     for layer in range(config.depth):
-        plan = layer_plan(comp, layer, frames, h, w, num_special)
-        if plan.kind == "dense":
+        plan = layer_plan(comp, layer, geom)
+        if plan.kind == LayerKind.DENSE:
             q, kv, dqk = N, N, d
             attn = dense_global_attn
             lin = _block_linear_flops(N, N, N, c, hidden)
             fixed, dyn, dup, exp_fill = N, 0, 0, float(N)
-        elif plan.kind == "frame":
+        elif plan.kind == LayerKind.FRAME:
             q, kv, dqk = L, L, d
             attn = frames * _attn_flops(L, L, heads, d, d)
             lin = _block_linear_flops(N, N, N, c, hidden)
@@ -99,7 +101,7 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
             dv = d if comp.head_pad_multiple == 1 or not plan.size_column else dqk
             attn = _attn_flops(q, kv, heads, dqk, dv)
             # K/V-only layers project K and V for the kept tokens alone
-            lin = _block_linear_flops(N, q, N, c, hidden, rows_kv=kv if plan.kind == "kv" else N)
+            lin = _block_linear_flops(N, q, N, c, hidden, rows_kv=kv if plan.kind == LayerKind.KV else N)
             fixed, dyn, dup = plan.n_fixed, plan.n_dyn, plan.n_dup
             exp_fill = plan.n_fixed + plan.expected_dyn + plan.expected_dup
         match = 2 * plan.match_pairs * c if plan.match == "compute" else 0

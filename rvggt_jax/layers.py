@@ -74,16 +74,6 @@ def layer_scale(p: Params | None, x: jax.Array) -> jax.Array:
     return x if p is None else x * p["gamma"]
 
 
-def finish_block(p: Params, x: jax.Array, attn_rows, inputs: tuple, eps: float = TORCH_LN_EPS, dtype: Any = None
-                 ) -> jax.Array:
-    """The rest of a block after attention, in one in-place pass over token chunks of x
-    [B, N, C] (the residual stream): `finish_rows` with attn_rows(*input_chunks) (inputs
-    [B, N, ...] chunked along N), e.g. the unmerged rows of a merged attention output."""
-    hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
-    return update_tokens(lambda xc, *ic: finish_rows(p, xc, attn_rows(*ic), eps, dtype), x, inputs,
-                         bytes_per_row=x.shape[0] * hidden * 4)
-
-
 # ---------------------------------------------------------------------------------------
 # 2D rotary position embedding
 # ---------------------------------------------------------------------------------------
@@ -193,10 +183,68 @@ def qkv_fn(p: Params, num_heads: int, eps: float, dtype: Any, parts: str = "qkv"
     return one
 
 
+# ---------------------------------------------------------------------------------------
+# The transformer block (written once) and its attention hooks
+# ---------------------------------------------------------------------------------------
+
+
+def run_block(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float = TORCH_LN_EPS, dtype: Any = None,
+              projected: bool = False, with_aux: bool = False, axis: int = 1, bytes_per_row: int | None = None,
+              multiple: int = 8):
+    """The pre-norm transformer block with LayerScale, the one copy every block runs (plain,
+    DINO, camera trunk, compressed global): each chunk of rows of the residual stream x
+    [B, N, C] becomes x + ls1(proj(attention)), then + ls2(mlp(norm2(.))).
+
+    The attention is the hook `attend(x_rows, *input_rows)`, given the chunk's rows of x
+    and of `inputs` (each chunked along `axis` like x): it returns the attention output
+    of those rows, heads [..., H, D] (then projected here by `attn.proj`) or, with
+    `projected`, rows [..., C] it projected itself (a merged attention projects its merged
+    rows before unmerging them); with `with_aux`, a pair (output, aux rows), aux stitched
+    along `axis` and returned too. Hooks: `self_attention` (each chunk attends within
+    itself: whole sequences per chunk), `attention_to` (queries of the chunk against given
+    K/V), the unmerge of `compression.global_block`, the saliency of `patch_embed`.
+
+    x is kept in its own dtype (float32 in the model); norms, attention and MLP compute in
+    `dtype` (default x's): torch's autocast. One in-place pass over chunks of rows
+    (`chunks.update_tokens`; with `with_aux` the results are new arrays, `map_tokens`) of
+    `bytes_per_row` (default: one token's float32 MLP hidden layer per sequence)."""
+    c = x.shape[-1]
+    proj = p["attn"]["proj"]
+    if bytes_per_row is None:
+        bytes_per_row = x.shape[0] * p["mlp"]["fc1"]["kernel"].shape[-1] * 4
+
+    def rows(xc, *ic):
+        out, aux = attend(xc, *ic) if with_aux else (attend(xc, *ic), None)
+        if not projected:
+            out = linear(proj, out.reshape(xc.shape[:2] + (c,)))
+        y = _finish_rows(p, xc, out, eps, dtype)
+        return (y, aux) if with_aux else y
+
+    if with_aux:
+        return map_tokens(rows, (x, *inputs), axis=axis, bytes_per_row=bytes_per_row, multiple=multiple)
+    return update_tokens(rows, x, inputs, axis=axis, bytes_per_row=bytes_per_row, multiple=multiple)
+
+
+def self_attention(p: Params, num_heads: int, eps: float = TORCH_LN_EPS, dtype: Any = None):
+    """`run_block`'s hook for rows that attend among themselves: (x rows [B, r, C], cos,
+    sin [1|B, r, 1, D] or nothing) -> attention output [B, r, H, D]."""
+    qkv = qkv_fn(p, num_heads, eps, dtype)
+    return lambda xc, *tc: attention(*qkv(xc, *tc))
+
+
+def attention_to(p: Params, num_heads: int, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None,
+                 eps: float = TORCH_LN_EPS, dtype: Any = None):
+    """`run_block`'s hook for the query side of a long sequence: each chunk's Q (norm1,
+    projection, qk-norm, RoPE with its rows of cos, sin) attends to the given K/V
+    [B, Nk, H, D] (with `key_bias` [B, Nk])."""
+    q_of = qkv_fn(p, num_heads, eps, dtype, "q")
+    return lambda xc, *tc: attention(q_of(xc, *tc)[0], k, v, key_bias)
+
+
 def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
           rope_freq: float | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
     """Pre-norm transformer block with LayerScale over B sequences: x [B, N, C] ->
-    [B, N, C], attention within each sequence.
+    [B, N, C], attention within each sequence (`run_block`).
 
     x is the residual stream (kept in its own dtype, float32 in the model); attention and
     MLP compute in `dtype` (default x's): the mixed precision of torch's autocast.
@@ -216,39 +264,19 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
     tables = () if pos is None else (pos.cos, pos.sin)
     per_sequence = n * hidden * 4
     if per_sequence <= chunks.TOKEN_CHUNK_BYTES:
-        def whole(xc, *tc):
-            q, k, v = qkv_fn(p, num_heads, eps, dtype)(xc, *tc)
-            return finish_rows(p, xc, linear(p["attn"]["proj"], attention(q, k, v).reshape(xc.shape[:2] + (c,))),
-                               eps, dtype)
-
+        whole = dict(eps=eps, dtype=dtype, axis=0, bytes_per_row=per_sequence, multiple=1)
+        attend = self_attention(p, num_heads, eps, dtype)
         if tables and tables[0].shape[0] != 1:  # per-sequence positions: chunk them too
-            return update_tokens(whole, x, tables, axis=0, bytes_per_row=per_sequence, multiple=1)
-        return update_tokens(lambda xc: whole(xc, *tables), x, axis=0, bytes_per_row=per_sequence, multiple=1)
+            return run_block(p, x, attend, tables, **whole)
+        return run_block(p, x, lambda xc: attend(xc, *tables), **whole)
 
     x, (k, v) = chunks.read_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), x, tables,
                                    bytes_per_row=b * c * 4 * 2 + c * 4)
-    return attend_rows(p, x, tables, k, v, num_heads, eps=eps, dtype=dtype)
+    return run_block(p, x, attention_to(p, num_heads, k, v, None, eps, dtype), tables, eps=eps, dtype=dtype)
 
 
-def attend_rows(p: Params, x: jax.Array, tables: tuple, k: jax.Array, v: jax.Array, num_heads: int,
-                key_bias: jax.Array | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
-    """The query side of a block over a long sequence, in one in-place pass over token
-    chunks of x [B, N, C]: each chunk's Q (norm1, projection, qk-norm, RoPE with its rows
-    of `tables` (cos, sin) [1|B, N, 1, D], or ()), attention to the given K/V [B, Nk, H, D]
-    (with `key_bias` [B, Nk]), output projection, residual and MLP (`finish_rows`)."""
-    c = x.shape[-1]
-    q_of = qkv_fn(p, num_heads, eps, dtype, "q")
-
-    def rows(xc, *tc):
-        o = attention(q_of(xc, *tc)[0], k, v, key_bias).reshape(xc.shape[:2] + (c,))
-        return finish_rows(p, xc, linear(p["attn"]["proj"], o), eps, dtype)
-
-    hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
-    return update_tokens(rows, x, tables, bytes_per_row=x.shape[0] * hidden * 4)
-
-
-def finish_rows(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None
-                ) -> jax.Array:
+def _finish_rows(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None
+                 ) -> jax.Array:
     """x + ls1(attn_rows), then + ls2(mlp(norm2(.))): rows of the residual stream x
     [..., C] and the attention branch's (projected) output [..., C]."""
     dtype = x.dtype if dtype is None else dtype
@@ -258,7 +286,8 @@ def finish_rows(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORC
 
 def select_block(blocks: Params, indices, i: jax.Array) -> Params:
     """The params of block `indices[i]` of numbered blocks ({"0": ..., "1": ...}), for a
-    `lax.scan` over `i`: one compiled body instead of one per block. Picked by
+    `lax.scan` over `i`: one compiled body instead of one per block. The one way the
+    model scans numbered blocks (aggregator, DINO, camera trunk, tracker). Picked by
     `lax.switch` rather than stacking all blocks along a new axis, because a stack copies
     every weight on every call (~3% of the small benchmark forward; 2.4 GB per call at
     the 1B layout)."""

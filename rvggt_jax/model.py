@@ -158,10 +158,12 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
         pose_enc_list = [shards.local_part(pe, 1) for pe in camera_head(params["camera_head"], cam, config.camera_head)]
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
-    out.update(dense_heads(params, agg, (hh, ww), config))
+    grid = config.token_grid((hh, ww))
+    enabled = {"depth_head": config.enable_depth, "point_head": config.enable_point}
+    out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid))
     if with_track:
-        tracks, vis, conf = track_head(params["track_head"], agg, images, config.patch_start_idx, query_points,
-                                       config, shards=shards)
+        tracks, vis, conf = track_head(params["track_head"], agg, config.track_head_config, grid, query_points,
+                                       shards=shards)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
     # The returned images are a copy of the input (an argument cannot be an output): made
     # from the last head output (x 1, exact) so that XLA makes it at the end, not at the

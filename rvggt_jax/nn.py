@@ -162,7 +162,7 @@ class DPTHead(_Part):
         from rvggt_jax.heads.dpt import depth_head, point_head
 
         fn = depth_head if self.output == "depth" else point_head
-        return fn(self.tree(), _as_layers(aggregated), tuple(image_hw), self.config)
+        return fn(self.tree(), _as_layers(aggregated), self.config.dpt_head, self.config.token_grid(image_hw))
 
 
 class TrackHead(_Part):
@@ -176,8 +176,8 @@ class TrackHead(_Part):
     def __call__(self, aggregated: Any, images: jax.Array, query_points: jax.Array):
         from rvggt_jax.heads.track import track_head
 
-        return track_head(self.tree(), _as_layers(aggregated), images, self.config.patch_start_idx,
-                          query_points, self.config)
+        return track_head(self.tree(), _as_layers(aggregated), self.config.track_head_config,
+                          self.config.token_grid(images.shape[-2:]), query_points)
 
 
 class VGGT(nn.Module):

@@ -17,7 +17,7 @@ import numpy as np
 
 from rvggt_jax import layers
 from rvggt_jax.attention import attention
-from rvggt_jax.chunks import map_tokens, update_tokens
+from rvggt_jax.chunks import update_tokens
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.layers import Params
 
@@ -147,17 +147,18 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
         x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype,
                                remat=config.remat)
 
-    # The last block is unrolled so that its q and k also give the saliency.
+    # The last block's attention hook also returns the saliency, read off the q and k it
+    # computes anyway; whole images per chunk, like every block.
     blk = p["blocks"][str(depth - 1)]
-    # The last block is written out so that its q and k also give the saliency; whole
-    # images per chunk, like every block.
-    def last_block(xc):
-        q, k, v = layers.qkv_fn(blk, dino.num_heads, eps, dtype)(xc)
-        o = layers.linear(blk["attn"]["proj"], attention(q, k, v).reshape(xc.shape[:2] + (xc.shape[-1],)))
-        return layers.finish_rows(blk, xc, o, eps, dtype), cls_saliency(q, k, num_prefix)
+    qkv = layers.qkv_fn(blk, dino.num_heads, eps, dtype)
+
+    def attend_with_saliency(xc):
+        q, k, v = qkv(xc)
+        return attention(q, k, v), cls_saliency(q, k, num_prefix)
 
     hidden = blk["mlp"]["fc1"]["kernel"].shape[-1]
-    x, saliency = map_tokens(last_block, (x,), axis=0, bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
+    x, saliency = layers.run_block(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True, axis=0,
+                                   bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
 
     c = x.shape[-1]
     x = update_tokens(lambda xc: layers.layer_norm(p["norm"], xc, eps, jnp.float32), x.reshape(1, -1, c),

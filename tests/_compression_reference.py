@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax import layers
+from rvggt_jax.compression.merge import Match
 
 
 def random_block_params(key, c: int = 32, heads: int = 2, mlp_ratio: float = 4.0) -> dict:
@@ -35,11 +36,10 @@ def random_block_params(key, c: int = 32, heads: int = 2, mlp_ratio: float = 4.0
             "ls2": {"gamma": 0.5 + 0.1 * jax.random.normal(next(ks), (c,), jnp.float32)}}
 
 
-def identity_match(n: int, batch: int) -> dict[str, jax.Array]:
+def identity_match(n: int, batch: int) -> Match:
     """The match of r = 0 (every token its own group)."""
-    return {"group": jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (batch, n)),
-            "sizes": jnp.ones((batch, n), jnp.float32),
-            "unm_pos": jnp.zeros((batch, 0), jnp.int32)}
+    return Match(jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (batch, n)), jnp.ones((batch, n), jnp.float32),
+                 jnp.zeros((batch, 0), jnp.int32))
 
 
 def global_positions(frames: int, h: int, w: int, ns: int = 5) -> jax.Array:

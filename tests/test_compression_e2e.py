@@ -61,6 +61,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     # must agree.
     from rvggt_jax import compression, layers
     from rvggt_jax.aggregator import aggregator_forward, layer_groups, special_tokens
+    from rvggt_jax.compression import Geometry
     from rvggt_jax.patch_embed import patch_embed
 
     params, config = tiny
@@ -68,8 +69,8 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     images = golden["images"]
     b, s, _, hh, ww = images.shape
     h, w = hh // 14, ww // 14
-    assert layer_groups(cfg, s, (h, w)) == ((0,), tuple(range(1, 10)), (10, 11, 12, 13), (14,), (15, 16, 17),
-                                            (18,), tuple(range(19, 24)))
+    assert layer_groups(cfg, Geometry(s, h, w, cfg.patch_start_idx)) == (
+        (0,), tuple(range(1, 10)), (10, 11, 12, 13), (14,), (15, 16, 17), (18,), tuple(range(19, 24)))
 
     def loop(p, images):
         tokens, sal = patch_embed(p["patch_embed"], images, cfg)
@@ -79,7 +80,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
         pos = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(h, w, 5))[None], cfg.head_dim,
                                                cfg.rope_freq)
         gpos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), pos)
-        state = compression.init_state(cfg, sal, s, (h, w))
+        state = compression.init_state(cfg.compression, sal, Geometry(s, h, w, cfg.patch_start_idx))
         out = []
         for i in range(cfg.depth):
             x = layers.block(p["frame_blocks"][str(i)], x.reshape(b * s, num, c), cfg.num_heads, pos, cfg.rope_freq)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax.compression.partition import (
+    Geometry,
     dst_cells,
     grid_keep,
     kv_static_keep,
@@ -18,7 +19,7 @@ from rvggt_jax.compression.partition import (
 
 
 def test_token_layout_exact():
-    lay = token_layout(2, 2, 3, 5)
+    lay = token_layout(Geometry(2, 2, 3, 5))
     assert lay.frame.tolist() == [0] * 11 + [1] * 11
     assert lay.special.tolist() == ([True] * 5 + [False] * 6) * 2
     assert lay.row.tolist() == ([-1] * 5 + [0, 0, 0, 1, 1, 1]) * 2
@@ -51,7 +52,7 @@ def test_dst_cells_one_per_aligned_cell(h, w):
 
 
 def test_partition_exact_small():
-    part = partition(2, 2, 3, 5, -1)
+    part = partition(Geometry(2, 2, 3, 5), -1)
     assert part.dst_pos.tolist() == list(range(16)) + [16, 18]
     assert part.src_pos.tolist() == [17, 19, 20, 21]
     assert part.src_pos_f.tolist() == [[17, 19, 20, 21]]
@@ -63,13 +64,13 @@ def test_partition_exact_small():
 
 @pytest.mark.parametrize("s,h,w", [(1, 3, 3), (3, 5, 7), (4, 12, 16)])
 def test_partition_counts(s, h, w):
-    part = partition(s, h, w, 5, 33)
+    part = partition(Geometry(s, h, w, 5), 33)
     L = 5 + h * w
     assert part.is_dst[:L].all()
     assert part.dst_pos.size == L + (s - 1) * (5 + num_cells(h, w))
     assert part.src_pos.size == (s - 1) * (h * w - num_cells(h, w))
     assert part.is_dst.sum() + (~part.is_dst).sum() == s * L
-    lay = token_layout(s, h, w, 5)
+    lay = token_layout(Geometry(s, h, w, 5))
     assert (~lay.special[part.src_pos]).all() and (lay.frame[part.src_pos] >= 1).all()
 
 
@@ -86,15 +87,15 @@ def test_phase_offsets_exact():
 def test_kv_keep_mask_exact():
     # S=2, 3 x 4 grid, tile (3, 2): truncated grid 3 x 3; frame 1 offsets (0, 1):
     # rows 0, 1 and columns 1, 2 -> local patches 1, 2, 5, 6.
-    keep = kv_static_keep(2, 3, 4, 5, (3, 2), True, True)
+    keep = kv_static_keep(Geometry(2, 3, 4, 5), (3, 2), True, True)
     assert keep[:17].all()  # frame 0 (anchor)
     assert keep[17:22].all()  # frame 1 specials
     assert np.flatnonzero(keep[22:]).tolist() == [1, 2, 5, 6]
-    no_anchor = kv_static_keep(2, 3, 4, 5, (3, 2), True, False)
+    no_anchor = kv_static_keep(Geometry(2, 3, 4, 5), (3, 2), True, False)
     assert np.flatnonzero(no_anchor[5:17]).tolist() == [0, 1, 4, 5] and no_anchor[:5].all()
-    no_phase = kv_static_keep(2, 3, 4, 5, (3, 2), False, True)
+    no_phase = kv_static_keep(Geometry(2, 3, 4, 5), (3, 2), False, True)
     assert np.flatnonzero(no_phase[22:]).tolist() == [0, 1, 4, 5]
-    assert kv_static_keep(2, 3, 4, 5, (1, 1), True, False).all()
+    assert kv_static_keep(Geometry(2, 3, 4, 5), (1, 1), True, False).all()
 
 
 @pytest.mark.parametrize("tile,h,w", [((3, 2), 12, 15), ((5, 3), 10, 15), ((4, 3), 12, 16), ((2, 1), 8, 6),
@@ -102,7 +103,7 @@ def test_kv_keep_mask_exact():
 def test_kept_fraction_is_k_over_t_squared(tile, h, w):
     t, k = tile
     s = 7
-    keep = kv_static_keep(s, h, w, 5, tile, True, False)
+    keep = kv_static_keep(Geometry(s, h, w, 5), tile, True, False)
     L = 5 + h * w
     for f in range(s):
         patches = keep[f * L + 5:(f + 1) * L]
@@ -125,9 +126,9 @@ def test_union_over_t_squared_frames_covers_truncated_grid(tile, h, w):
 
 
 def test_protection_counts():
-    assert saliency_protect_count(12, 16, 0.1) == 19
-    assert saliency_protect_count(2, 3, 0.1) == 1  # max(1, floor(0.6))
-    assert saliency_protect_count(12, 16, 0.0) == 0
+    assert saliency_protect_count(Geometry(2, 12, 16, 5), 0.1) == 19
+    assert saliency_protect_count(Geometry(2, 2, 3, 5), 0.1) == 1  # max(1, floor(0.6))
+    assert saliency_protect_count(Geometry(2, 12, 16, 5), 0.0) == 0
     assert stride_protected(100, 0.1).tolist() == list(range(0, 100, 10))
     assert stride_protected(105, 0.1).tolist() == list(range(0, 100, 10))  # N // 10 = 10, first 10
     assert stride_protected(5, 0.1).size == 0

@@ -8,7 +8,7 @@ import pytest
 from rvggt_jax.compression import kv as kv_lib
 from rvggt_jax.compression import make_compression
 from rvggt_jax.compression import merge as merge_lib
-from rvggt_jax.compression.partition import partition
+from rvggt_jax.compression.partition import Geometry, partition
 from rvggt_jax.compression.plan import layer_plan
 from tests._compression_reference import identity_match, reference_match
 
@@ -36,9 +36,9 @@ def _protected(sal, kp):
 
 def _parents(match, part, plan):
     """parent position of every token from a match (dst position of its group)."""
-    group = np.asarray(match["group"])
+    group = np.asarray(match.group)
     layout = np.concatenate([np.broadcast_to(part.dst_pos, (group.shape[0], plan.n_dst)),
-                             np.asarray(match["unm_pos"])], axis=1)
+                             np.asarray(match.unm_pos)], axis=1)
     return np.take_along_axis(layout, group, axis=1)
 
 
@@ -46,11 +46,11 @@ def _parents(match, part, plan):
 @pytest.mark.parametrize("rho", [0.3, 0.6, 0.99])
 def test_match_equals_reference(scope, rho):
     cc = make_compression("regime", 24, merge_ratio=(rho, rho, rho), match_scope=scope, dst_seed=7)
-    plan = layer_plan(cc, 0, S, H, W, NS)
-    part = partition(S, H, W, NS, cc.dst_seed)
+    plan = layer_plan(cc, 0, Geometry(S, H, W, NS))
+    part = partition(Geometry(S, H, W, NS), cc.dst_seed)
     metric, sal = _inputs()
     prot = _protected(sal, plan.protect_per_frame)
-    match = jax.jit(lambda m, p: merge_lib.compute_match(m, p, part, plan, 64))(
+    match = jax.jit(lambda m, p: merge_lib.compute_match(m, p, plan, 64))(
         jnp.asarray(metric), jnp.asarray(prot[:, part.src_pos]))
     parents = _parents(match, part, plan)
     for bi in range(metric.shape[0]):
@@ -60,21 +60,21 @@ def test_match_equals_reference(scope, rho):
         assert gap > 1e-5 and second > 1e-5  # no near-ties on this data
         np.testing.assert_array_equal(parents[bi], ref)
     # static counts
-    assert match["group"].shape == (2, N) and match["sizes"].shape == (2, plan.n_query)
-    assert match["unm_pos"].shape == (2, plan.n_unm)
+    assert match.group.shape == (2, N) and match.sizes.shape == (2, plan.n_query)
+    assert match.unm_pos.shape == (2, plan.n_unm)
     assert plan.n_query == N - plan.r
 
 
 def test_protected_never_merged_and_sizes_count_groups():
     cc = make_compression("regime", 24)
-    plan = layer_plan(cc, 0, S, H, W, NS)
-    part = partition(S, H, W, NS, cc.dst_seed)
+    plan = layer_plan(cc, 0, Geometry(S, H, W, NS))
+    part = partition(Geometry(S, H, W, NS), cc.dst_seed)
     metric, sal = _inputs(3)
     prot = _protected(sal, plan.protect_per_frame)
-    match = merge_lib.compute_match(jnp.asarray(metric), jnp.asarray(prot[:, part.src_pos]), part, plan, 0)
+    match = merge_lib.compute_match(jnp.asarray(metric), jnp.asarray(prot[:, part.src_pos]), plan, 0)
     parents = _parents(match, part, plan)
-    group = np.asarray(match["group"])
-    sizes = np.asarray(match["sizes"])
+    group = np.asarray(match.group)
+    sizes = np.asarray(match.sizes)
     for bi in range(2):
         assert (parents[bi][prot[bi]] == np.flatnonzero(prot[bi])).all()  # protected stay themselves
         np.testing.assert_array_equal(np.bincount(group[bi], minlength=plan.n_query), sizes[bi])
@@ -88,19 +88,18 @@ def test_protected_never_merged_and_sizes_count_groups():
 def test_merge_unmerge_identity_and_group_outputs():
     x = jnp.asarray(np.random.default_rng(1).standard_normal((2, N, 6)), jnp.float32)
     ident = identity_match(N, 2)
-    np.testing.assert_array_equal(merge_lib.unmerge(merge_lib.merge(x, ident, N), ident), x)
+    np.testing.assert_array_equal(merge_lib.unmerge(merge_lib.merge(x, ident, N), ident.group), x)
 
     cc = make_compression("regime", 24, merge_ratio=(0.7, 0.7, 0.7))
-    plan = layer_plan(cc, 0, S, H, W, NS)
-    part = partition(S, H, W, NS, cc.dst_seed)
-    match = merge_lib.compute_match(x, None, part, plan, 0)
+    plan = layer_plan(cc, 0, Geometry(S, H, W, NS))
+    match = merge_lib.compute_match(x, None, plan, 0)
     m = merge_lib.merge(x, match, plan.n_query)
-    group = np.asarray(match["group"])
+    group = np.asarray(match.group)
     xs = np.asarray(x)
     for bi in range(2):
         for g in range(plan.n_query):
             np.testing.assert_allclose(m[bi, g], xs[bi][group[bi] == g].mean(0), rtol=1e-5, atol=1e-6)
-    y = merge_lib.unmerge(m, match)
+    y = merge_lib.unmerge(m, match.group)
     for bi in range(2):
         for n in range(N):
             np.testing.assert_array_equal(y[bi, n], m[bi, group[bi, n]])  # every token its group's row
@@ -108,16 +107,16 @@ def test_merge_unmerge_identity_and_group_outputs():
 
 def test_dynamic_kv_slots_hold_exactly_the_kept_unmerged_src():
     cc = make_compression("regime", 24)
-    plan = layer_plan(cc, 0, S, H, W, NS)  # tile (3, 2)
-    part = partition(S, H, W, NS, cc.dst_seed)
+    plan = layer_plan(cc, 0, Geometry(S, H, W, NS))  # tile (3, 2)
+    part = partition(Geometry(S, H, W, NS), cc.dst_seed)
     metric, sal = _inputs(5)
     prot = _protected(sal, plan.protect_per_frame)
-    match = merge_lib.compute_match(jnp.asarray(metric), jnp.asarray(prot[:, part.src_pos]), part, plan, 0)
-    idx, ok = kv_lib.dynamic_slots(plan, part, cc, match, jnp.asarray(prot), NS, H, W)
+    match = merge_lib.compute_match(jnp.asarray(metric), jnp.asarray(prot[:, part.src_pos]), plan, 0)
+    idx, ok = kv_lib.dynamic_slots(plan, cc, match, jnp.asarray(prot))
     assert idx.shape == ok.shape == (2, plan.n_dyn)
     from rvggt_jax.compression.partition import kv_static_keep
-    keep = kv_static_keep(S, H, W, NS, plan.tile, True, True)
-    unm = np.asarray(match["unm_pos"])
+    keep = kv_static_keep(Geometry(S, H, W, NS), plan.tile, True, True)
+    unm = np.asarray(match.unm_pos)
     for bi in range(2):
         want = {plan.n_dst + u for u in range(plan.n_unm) if keep[unm[bi, u]]}
         got = set(np.asarray(idx[bi])[np.asarray(ok[bi])].tolist())
@@ -138,20 +137,20 @@ def test_band_cache_reuse_and_recompute():
     seen, checks = {}, []
 
     def run(x, sal):  # traced once (eval_shape): the cache is a trace-time structure
-        state = init_state(cfg, sal, S, (H, W))
+        state = init_state(cfg.compression, sal, Geometry(S, H, W, NS))
         for layer in range(24):
-            before = dict(state["match"])
+            before = dict(state.matches)
             x, state = global_block(p, x, pos, layer, cfg, state)
-            plan = layer_plan(cfg.compression, layer, S, H, W, NS)
+            plan = layer_plan(cfg.compression, layer, Geometry(S, H, W, NS))
             if plan.match == "reuse":
-                checks.append(state["match"][plan.match_key] is before[plan.match_key])
+                checks.append(state.matches[plan.match_key] is before[plan.match_key])
             elif plan.match_key is not None:
                 checks.append(plan.match_key not in before)
                 seen[plan.match_key] = layer
             else:
-                checks.append(state["match"].keys() == before.keys())  # no-cache layers store nothing
-        checks.append(set(state["kv"]) == {"band0_rho0.9900|(3, 2)", "band1_rho0.5000|(5, 3)",
-                                           "band2_rho0.9900|(5, 3)"})
+                checks.append(state.matches.keys() == before.keys())  # no-cache layers store nothing
+        checks.append(set(state.kv) == {("band0_rho0.9900", (3, 2)), ("band1_rho0.5000", (5, 3)),
+                                        ("band2_rho0.9900", (5, 3))})
         return x
 
     jax.eval_shape(run, x, jnp.asarray(sal))
@@ -160,4 +159,4 @@ def test_band_cache_reuse_and_recompute():
 
     # without cache every merging layer computes
     no_cache = make_compression("no_cache", 24)
-    assert all(layer_plan(no_cache, i, S, H, W, NS).match == "compute" for i in range(24))
+    assert all(layer_plan(no_cache, i, Geometry(S, H, W, NS)).match == "compute" for i in range(24))

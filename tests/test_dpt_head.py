@@ -44,7 +44,7 @@ def test_dense_head_matches_upstream(setup, name, head, pred_key, groups, monkey
     assert dpt.frames_per_group(3, image_hw) == expected
     params = load_head_params(name, TRANSPOSED)
     # a fresh function per case: jit's trace cache must not reuse another grouping
-    pred, conf = jax.jit(lambda p, a: head(p, a, image_hw, config))(params, aggregated)
+    pred, conf = jax.jit(lambda p, a: head(p, a, config.dpt_head, config.token_grid(image_hw)))(params, aggregated)
     e_pred = rel_err(pred, io[pred_key])
     e_conf = rel_err(conf, io[pred_key + "_conf"])
     print(f"{name}: rel err {pred_key} {e_pred:.3g}, {pred_key}_conf {e_conf:.3g}")
@@ -56,8 +56,8 @@ def test_feature_only_shape_and_finite(setup):
     params = load_head_params("track_head.feature_extractor", TRANSPOSED)
     layer_idx = config.track_layer_idx
     tokens = {i: jnp.asarray(io[f"aggregated_{i:02d}"]) for i in layer_idx}
-    feats = jax.jit(dpt.dpt_features, static_argnums=(2, 3), static_argnames=("layer_idx", "patch_size"))(
-        params, tokens, image_hw, config.patch_start_idx, layer_idx=layer_idx, patch_size=config.patch_size)
+    feats = jax.jit(dpt.dpt_features, static_argnums=2, static_argnames="layer_idx")(
+        params, tokens, config.token_grid(image_hw), layer_idx=layer_idx)
     b, s, _, h, w = io["images"].shape
     assert feats.shape == (b, s, h // 2, w // 2, config.track_head.features)
     assert np.all(np.isfinite(np.asarray(feats)))
@@ -104,7 +104,7 @@ def test_grouped_features_equal_ungrouped(setup, monkeypatch):
 
     def features():
         return np.asarray(jax.jit(lambda p, t: dpt.dpt_features(
-            p, t, image_hw, config.patch_start_idx, layer_idx=config.track_layer_idx))(params, tokens))
+            p, t, config.token_grid(image_hw), layer_idx=config.track_layer_idx))(params, tokens))
 
     whole = features()
     monkeypatch.setattr(dpt, "GROUP_PIXELS", 2 * 112 * 154)

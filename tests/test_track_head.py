@@ -26,6 +26,8 @@ instead of 2 already gives 7e-4 on vis. No independent float32 implementation ca
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -81,9 +83,9 @@ def setup():
 
 def _run(setup, query_points, iters=None):
     config, io, params, aggregated = setup
-    fn = jax.jit(track_head, static_argnums=(3, 5, 6))
-    return fn(params, aggregated, jnp.asarray(io["images"]), config.patch_start_idx,
-              jnp.asarray(query_points), config, iters)
+    fn = jax.jit(track_head, static_argnums=(2, 3), static_argnames="iters")
+    return fn(params, aggregated, config.track_head_config, config.token_grid(io["images"].shape[-2:]),
+              jnp.asarray(query_points), iters=iters)
 
 
 # ---------------------------------------------------------------------------------------
@@ -122,8 +124,8 @@ def test_final_iteration_against_fixture(setup):
 
 def test_features_shape(setup):
     config, io, params, aggregated = setup
-    feats = jax.jit(track_features, static_argnums=(3, 4))(
-        params, aggregated, jnp.asarray(io["images"]), config.patch_start_idx, config)
+    feats = jax.jit(track_features, static_argnums=(2, 3))(
+        params, aggregated, config.track_head_config, config.token_grid(io["images"].shape[-2:]))
     b, s, _, h, w = io["images"].shape
     assert feats.shape == (b, s, h // 2, w // 2, config.track_head.features)
 
@@ -140,7 +142,7 @@ def test_jit_traces_once_per_num_queries(setup):
 
     def fn(p, agg, im, q):
         traces.append(q.shape)
-        return track_head(p, agg, im, config.patch_start_idx, q, config, 1)
+        return track_head(p, agg, config.track_head_config, config.token_grid(im.shape[-2:]), q, iters=1)
 
     jfn = jax.jit(fn)
     rng = np.random.default_rng(0)
@@ -166,10 +168,11 @@ def test_batch_elements_are_independent(setup):
     q1 = q0[:, ::-1] * np.float32(0.9) + np.float32(3.0)
     agg2 = {i: jnp.concatenate([a, a], axis=0) for i, a in aggregated.items()}
     images2 = jnp.concatenate([jnp.asarray(io["images"])] * 2, axis=0)
-    fn = jax.jit(track_head, static_argnums=(3, 5, 6))
-    both = fn(params, agg2, images2, 5, jnp.asarray(np.concatenate([q0, q1])), config, 2)
+    fn = jax.jit(track_head, static_argnums=(2, 3), static_argnames="iters")
+    grid = config.token_grid(images2.shape[-2:])
+    both = fn(params, agg2, config.track_head_config, grid, jnp.asarray(np.concatenate([q0, q1])), iters=2)
     for k, q in enumerate((q0, q1)):
-        single = fn(params, aggregated, jnp.asarray(io["images"]), 5, jnp.asarray(q), config, 2)
+        single = fn(params, aggregated, config.track_head_config, grid, jnp.asarray(q), iters=2)
         for a, b in zip(both, single):
             a = np.asarray(a)[:, k:k + 1] if a.ndim == 5 else np.asarray(a)[k:k + 1]  # tracks [I, B, ...]
             # 1e-4: the feature extractor batches frames differently for B=2 (frame groups),
@@ -270,3 +273,12 @@ def test_sincos_embeddings():
     ref = np.concatenate([np.stack([np.sin(0.01 * f), np.cos(0.01 * f)], -1).ravel(),
                           np.stack([np.sin(-0.002 * f), np.cos(-0.002 * f)], -1).ravel()])
     np.testing.assert_allclose(emb[0], ref, rtol=1e-5, atol=1e-6)
+
+
+def test_track_features_need_the_extractor_layers(setup):
+    # the raw sub-config may leave them to the DPT head's: VGGTConfig.track_head_config fills them in
+    config, io, params, aggregated = setup
+    raw = dataclasses.replace(config.track_head, intermediate_layer_idx=None)
+    with pytest.raises(ValueError, match="track_head_config"):
+        track_features(params, aggregated, raw, config.token_grid(io["images"].shape[-2:]))
+    assert config.track_head_config.intermediate_layer_idx == config.track_layer_idx

@@ -19,10 +19,26 @@ See docs/method.md for every choice and the deviations from the authors' code.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 from rvggt_jax.compression.presets import PRESET_OVERRIDES
+
+
+class LayerKind(enum.StrEnum):
+    """What a global layer does, the one vocabulary of the configuration and the plans.
+
+    The configuration says DENSE, FRAME or COMPRESSED (`CompressionConfig.layer_kind`);
+    the static plan of a COMPRESSED layer (`plan.layer_plan`) decides between MERGE
+    (r > 0 tokens merged, K/V possibly subsampled), KV (no merging, K/V subsampled) and
+    DENSE (nothing to compress)."""
+
+    DENSE = "dense"
+    FRAME = "frame"  # attention within each frame
+    COMPRESSED = "compressed"
+    MERGE = "merge"
+    KV = "kv"
 
 PROTECT_MODES = ("saliency", "stride", "none")
 MATCH_SCOPES = ("sequence", "frame")
@@ -180,14 +196,14 @@ class CompressionConfig:
             return (1, 1)
         return sigma_to_tile(_per_layer(self.kv_sigma, layer, self.depth, self.kv_bands, "kv_sigma"))
 
-    def layer_kind(self, layer: int) -> str:
-        """"dense" | "frame" | "compressed" (the shape plan may still reduce a compressed
-        layer with nothing to compress to the dense block)."""
+    def layer_kind(self, layer: int) -> LayerKind:
+        """DENSE | FRAME | COMPRESSED (the shape plan may still reduce a compressed layer
+        with nothing to compress to the dense block)."""
         if self.is_dense or layer in self.dense_layers:
-            return "dense"
+            return LayerKind.DENSE
         if layer in self.frame_layers:
-            return "frame"
-        return "compressed"
+            return LayerKind.FRAME
+        return LayerKind.COMPRESSED
 
     def layer_metric(self, layer: int) -> str:
         if self.match_metric != "auto":

@@ -11,12 +11,22 @@ slots by compaction (kept candidates first), the rest masked.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.compression.partition import Partition, kv_static_keep
+from rvggt_jax.compression.config import CompressionConfig, LayerKind
+from rvggt_jax.compression.merge import Match
 from rvggt_jax.compression.plan import LayerPlan
+
+
+class KVSlots(NamedTuple):
+    """The data-dependent K/V slots of a layer (a pytree)."""
+
+    index: jax.Array  # [B, n_dyn] int32 indices into the query layout
+    valid: jax.Array  # [B, n_dyn] bool: the slot is filled
 
 
 def compact(valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
@@ -26,32 +36,31 @@ def compact(valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
     return order, jnp.take_along_axis(valid, order, axis=-1, mode="promise_in_bounds")
 
 
-def dynamic_slots(plan: LayerPlan, part: Partition, comp, match: dict[str, jax.Array] | None,
-                  protected: jax.Array | None, num_special: int, h: int, w: int) -> tuple[jax.Array, jax.Array]:
-    """The data-dependent K/V slots of a layer: (indices into the query layout [B, n_dyn],
-    valid [B, n_dyn]).
+def dynamic_slots(plan: LayerPlan, comp: CompressionConfig, match: Match | None,
+                  protected: jax.Array | None) -> KVSlots:
+    """The data-dependent K/V slots of a layer (its static mask `plan.kv_keep`, its
+    partition `plan.partition`).
 
     protected: [B, N] bool Psi-protection flags (only read when the plan keeps protected
     tokens in K/V)."""
-    keep = jnp.asarray(kv_static_keep(plan.frames, h, w, num_special, plan.tile, comp.phase_shift, comp.anchor))
+    keep_np = plan.kv_keep
     keep_protected = comp.kv_protect_saliency and protected is not None
-    if plan.kind == "kv":
+    if plan.kind == LayerKind.KV:
         # Identity layout: candidates are the positions not kept statically.
-        cand = np.flatnonzero(~np.asarray(kv_static_keep(plan.frames, h, w, num_special, plan.tile, comp.phase_shift,
-                                                         comp.anchor)))
+        cand = np.flatnonzero(~keep_np)
         valid = jnp.take(protected, cand, axis=1, mode="clip")
         idx, ok = compact(valid, plan.n_dyn)
-        return jnp.take(jnp.asarray(cand, jnp.int32), idx, mode="clip"), ok
-    unm_pos = match["unm_pos"]  # [B, U]
-    valid = jnp.take(keep, unm_pos, mode="clip")
+        return KVSlots(jnp.take(jnp.asarray(cand, jnp.int32), idx, mode="clip"), ok)
+    unm_pos = match.unm_pos  # [B, U]
+    valid = jnp.take(jnp.asarray(keep_np), unm_pos, mode="clip")
     if keep_protected:
         valid = valid | jnp.take_along_axis(protected, unm_pos, axis=1, mode="promise_in_bounds")
     cand = plan.n_dst + jnp.broadcast_to(jnp.arange(plan.n_unm, dtype=jnp.int32), unm_pos.shape)
     if keep_protected:
-        keep_np = np.asarray(kv_static_keep(plan.frames, h, w, num_special, plan.tile, comp.phase_shift, comp.anchor))
-        dst_not_kept = np.flatnonzero(~keep_np[part.dst_pos])  # indices into the dst part
-        valid = jnp.concatenate([jnp.take(protected, part.dst_pos[dst_not_kept], axis=1, mode="clip"), valid], axis=1)
+        dst_pos = plan.partition.dst_pos
+        dst_not_kept = np.flatnonzero(~keep_np[dst_pos])  # indices into the dst part
+        valid = jnp.concatenate([jnp.take(protected, dst_pos[dst_not_kept], axis=1, mode="clip"), valid], axis=1)
         cand = jnp.concatenate([jnp.broadcast_to(jnp.asarray(dst_not_kept, jnp.int32),
                                                  (cand.shape[0], dst_not_kept.size)), cand], axis=1)
     idx, ok = compact(valid, plan.n_dyn)
-    return jnp.take_along_axis(cand, idx, axis=1, mode="promise_in_bounds"), ok
+    return KVSlots(jnp.take_along_axis(cand, idx, axis=1, mode="promise_in_bounds"), ok)

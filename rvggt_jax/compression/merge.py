@@ -1,10 +1,7 @@
 """Bipartite token merging with static shapes: matching, group ids, sizes, merge, unmerge.
 
-A *match* (what the band cache stores) is
-  group   [B, N] int32  index of every token's group in the query layout
-                        [dst (N_dst) ; unmerged src (U)]; a merged src points at its dst.
-  sizes   [B, N_m] f32  g = 1 + number of src merged into a dst, 1 otherwise.
-  unm_pos [B, U] int32  sequence positions of the unmerged src, in query-layout order.
+A *match* (`Match`, what the band cache stores) is the group of every token, the group
+sizes and the unmerged src tokens.
 
 Merging averages q, k, v (after qk-norm and RoPE) over each group; unmerging gives
 every token its group's row.
@@ -13,6 +10,7 @@ every token its group's row.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -20,8 +18,21 @@ import numpy as np
 
 from rvggt_jax import chunks
 from rvggt_jax.frames import FrameShards
-from rvggt_jax.compression.partition import Partition
 from rvggt_jax.compression.plan import LayerPlan
+
+
+class Match(NamedTuple):
+    """The data-dependent result of matching (a pytree)."""
+
+    group: jax.Array  # [B, N] int32: every token's group in the query layout [dst (N_dst) ; unmerged src (U)]
+    sizes: jax.Array  # [B, N_m] float32: g = 1 + number of src merged into a dst, 1 otherwise
+    unm_pos: jax.Array  # [B, U] int32: positions of the unmerged src, in query-layout order
+
+    @classmethod
+    def zeros(cls, plan: LayerPlan, batch: int) -> "Match":
+        """A match of the plan's shapes filled with zeros (the initial carry of a band's scan)."""
+        return cls(jnp.zeros((batch, plan.tokens), jnp.int32), jnp.zeros((batch, plan.n_query), jnp.float32),
+                   jnp.zeros((batch, plan.n_unm), jnp.int32))
 
 # Score of protected src: below every cosine similarity, so never among the top r.
 PROTECTED_SCORE = -4.0
@@ -174,16 +185,16 @@ def _inverse_permutation(order: jax.Array) -> jax.Array:
     return jnp.put_along_axis(jnp.zeros_like(ranks), order, ranks, axis=-1, inplace=False)
 
 
-def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Partition, plan: LayerPlan,
-                  chunk: int, dtype=None, transform=None, shards: FrameShards | None = None,
-                  per_frame: int = 0) -> dict[str, jax.Array]:
+def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: LayerPlan, chunk: int, dtype=None,
+                  transform=None, shards: FrameShards | None = None) -> Match:
     """metric [B, N, C] (similarity features), protected_src [B, N_src] bool or None ->
-    the match of this layer's plan (see the module docstring). The unit rows are
+    the `Match` of this layer's plan (its partition: `plan.partition`). The unit rows are
     normalised in float32 and stored in `dtype` (default: the metric's) block by block;
     the cosine similarities accumulate in float32 (`best_match`). Split over devices
     (`shards`): metric holds this device's tokens; the match is sequence-wide, the same
     on every device."""
-    found = dict(chunk=chunk, dtype=dtype, transform=transform, shards=shards, per_frame=per_frame)
+    found = dict(chunk=chunk, dtype=dtype, transform=transform, shards=shards, per_frame=plan.per_frame)
+    part = plan.partition
     b = metric.shape[0]
     n_dst, n_src, r, U = plan.n_dst, plan.n_src, plan.r, plan.n_unm
 
@@ -222,16 +233,16 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, part: Part
     counts = jax.vmap(lambda g, w: jax.ops.segment_sum(w, g, num_segments=n_dst + 1))(
         jnp.where(merged, group_src, n_dst), merged.astype(jnp.float32))[:, :n_dst]
     sizes = jnp.concatenate([1.0 + counts, jnp.ones((b, U), jnp.float32)], axis=1)
-    return {"group": group, "sizes": sizes, "unm_pos": unm_pos.astype(jnp.int32)}
+    return Match(group, sizes, unm_pos.astype(jnp.int32))
 
 
-def merge(x: jax.Array, match: dict[str, jax.Array], n_query: int) -> jax.Array:
+def merge(x: jax.Array, match: Match, n_query: int) -> jax.Array:
     """x [B, N, F] -> group means [B, N_m, F] in x's dtype, summed in float32."""
     return merge_map(lambda xc: (xc,), (x,), match, n_query, x.shape[-1] * 4)[0]
 
 
-def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, bytes_per_row: int,
-              dep: jax.Array | None = None, owned: bool = False) -> tuple:
+def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int, dep: jax.Array | None = None,
+              owned: bool = False) -> tuple:
     """Group means of per-token values that are never formed for the whole sequence:
     `fn(*chunks) -> (values [B, r, ...], ...)` over token chunks of the inputs (axis 1),
     each chunk added into float32 sums [B, N_m, ...] at its tokens' groups, then divided
@@ -256,7 +267,7 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
         return tuple(a.at[ids].add(v.reshape((-1,) + v.shape[2:]).astype(jnp.float32), mode="promise_in_bounds")
                      for a, v in zip(acc, vals))
 
-    group = match["group"]
+    group = match.group
     if rows >= n:
         sums = add(sums, group, *inputs)
     elif owned:
@@ -265,7 +276,7 @@ def merge_map(fn, inputs: tuple, match: dict[str, jax.Array], n_query: int, byte
     else:
         sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
-    sizes = match["sizes"]
+    sizes = match.sizes
     means = tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype) for a, o in zip(sums, spec))
     return (x0, *means) if owned else means
 
@@ -289,6 +300,7 @@ def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
     return chunks.fold_tokens(add, sums, (group, values), n, 1, chunk).reshape((b, rows) + values.shape[2:])
 
 
-def unmerge(y: jax.Array, match: dict[str, jax.Array]) -> jax.Array:
-    """y [B, N_m, F] -> [B, N, F]: every token takes its group's row."""
-    return chunks.take_along(y, match["group"], axis=1)
+def unmerge(y: jax.Array, group: jax.Array) -> jax.Array:
+    """y [B, N_m, F] -> [B, N, F]: every token takes its group's row (group [B, N], a
+    `Match.group` or a chunk of it)."""
+    return chunks.take_along(y, group, axis=1)

@@ -5,16 +5,48 @@ tokens, L = num_special + h*w per frame: `num_special` tokens (camera, registers
 patches row-major. Position n -> frame n // L, local index n % L; patch (i, j) of a frame
 sits at local index num_special + i*w + j.
 
-Everything here is a pure function of Python ints, cached, and returns read-only numpy
-arrays, so the compressed block never branches on data and every shape is static.
+Everything here is a pure function of the static `Geometry` (and configuration), cached,
+and returns read-only numpy arrays, so the compressed block never branches on data and
+every shape is static.
 """
 
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from typing import NamedTuple
 
+import jax
 import numpy as np
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The static shape of a global block's sequence: `frames` frames, each `num_special`
+    special tokens then an h x w grid of patches (row-major)."""
+
+    frames: int
+    h: int
+    w: int
+    num_special: int
+
+    @property
+    def per_frame(self) -> int:
+        """L: tokens per frame."""
+        return self.num_special + self.h * self.w
+
+    @property
+    def tokens(self) -> int:
+        """N = S * L: tokens of the sequence."""
+        return self.frames * self.per_frame
+
+    @property
+    def patches(self) -> int:
+        """T = h * w: patches per frame."""
+        return self.h * self.w
+
+
+jax.tree_util.register_static(Geometry)
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -34,14 +66,14 @@ class TokenLayout(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def token_layout(frames: int, h: int, w: int, num_special: int) -> TokenLayout:
-    L = num_special + h * w
-    n = np.arange(frames * L)
+def token_layout(geom: Geometry) -> TokenLayout:
+    L = geom.per_frame
+    n = np.arange(geom.tokens)
     frame, local = n // L, n % L
-    special = local < num_special
-    patch = np.where(special, -1, local - num_special)
-    row = np.where(special, -1, patch // w)
-    col = np.where(special, -1, patch % w)
+    special = local < geom.num_special
+    patch = np.where(special, -1, local - geom.num_special)
+    row = np.where(special, -1, patch // geom.w)
+    col = np.where(special, -1, patch % geom.w)
     return TokenLayout(*(_ro(a) for a in (frame, local, special, row, col)))
 
 
@@ -92,9 +124,10 @@ class Partition(NamedTuple):
 
 
 @functools.lru_cache(maxsize=64)
-def partition(frames: int, h: int, w: int, num_special: int, seed: int) -> Partition:
-    L = num_special + h * w
-    N = frames * L
+def partition(geom: Geometry, seed: int) -> Partition:
+    frames, h, w, num_special = geom.frames, geom.h, geom.w, geom.num_special
+    L = geom.per_frame
+    N = geom.tokens
     is_dst = np.zeros(N, bool)
     is_dst[:L] = True
     for f in range(1, frames):
@@ -146,12 +179,12 @@ def grid_keep(row: np.ndarray, col: np.ndarray, frame: np.ndarray, h: int, w: in
 
 
 @functools.lru_cache(maxsize=256)
-def kv_static_keep(frames: int, h: int, w: int, num_special: int, tile: tuple[int, int],
-                   phase_shift: bool, anchor: bool) -> np.ndarray:
+def kv_static_keep(geom: Geometry, tile: tuple[int, int], phase_shift: bool, anchor: bool) -> np.ndarray:
     """[N] bool: the positions kept as K/V for static reasons (camera/register tokens,
-    frame 0 when anchored, patches on the phase-shifted sub-grid)."""
-    lay = token_layout(frames, h, w, num_special)
-    keep = lay.special | grid_keep(lay.row, lay.col, lay.frame, h, w, tile, phase_shift)
+    frame 0 when `anchor`, patches on the (phase-shifted) sub-grid of `tile`). A layer's
+    mask is `LayerPlan.kv_keep`."""
+    lay = token_layout(geom)
+    keep = lay.special | grid_keep(lay.row, lay.col, lay.frame, geom.h, geom.w, tile, phase_shift)
     if anchor:
         keep = keep | (lay.frame == 0)
     return _ro(keep)
@@ -162,10 +195,9 @@ def kv_static_keep(frames: int, h: int, w: int, num_special: int, tile: tuple[in
 # ---------------------------------------------------------------------------------------
 
 
-def saliency_protect_count(h: int, w: int, alpha: float) -> int:
+def saliency_protect_count(geom: Geometry, alpha: float) -> int:
     """Protected patches per frame >= 1: max(1, floor(alpha*T)) (0 when alpha is 0)."""
-    T = h * w
-    return 0 if alpha <= 0 else max(1, int(alpha * T))
+    return 0 if alpha <= 0 else max(1, int(alpha * geom.patches))
 
 
 @functools.lru_cache(maxsize=64)

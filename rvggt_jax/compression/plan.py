@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from rvggt_jax.compression.config import CompressionConfig
+from rvggt_jax.compression.config import CompressionConfig, LayerKind
 from rvggt_jax.compression.partition import (
+    Geometry,
+    Partition,
     _ro,
     kv_static_keep,
     partition,
@@ -33,11 +35,12 @@ from rvggt_jax.compression.partition import (
 @dataclass(frozen=True)
 class LayerPlan:
     layer: int
-    kind: str  # "dense" | "frame" | "merge" (r > 0) | "kv" (no merging, K/V subsampled)
+    kind: LayerKind  # DENSE | FRAME | MERGE (r > 0) | KV (no merging, K/V subsampled)
+    geometry: Geometry
     frames: int
     tokens: int  # N = S * L
     per_frame: int  # L
-    r: int  # merged src tokens (0 unless kind == "merge")
+    r: int  # merged src tokens (0 unless kind is MERGE)
     n_dst: int
     n_src: int
     n_unm: int  # U: src tokens left unmerged
@@ -58,112 +61,116 @@ class LayerPlan:
     scope: str
     r_frame: int  # r per frame (frame scope)
     match_pairs: int  # src x dst similarity pairs evaluated when match == "compute"
-    protect_per_frame: int  # kp (saliency protection)
+    protect_per_frame: int  # protected patches per frame >= 1 (saliency protection)
+    # The static index sets of a compressed layer (None for DENSE and FRAME), computed with
+    # the plan so that the block reads them from it (not compared: they follow from the
+    # fields above and the configuration).
+    partition: Partition | None = field(default=None, compare=False, repr=False)
+    kv_keep: np.ndarray | None = field(default=None, compare=False, repr=False)  # [N] `kv_static_keep`
+    fixed_kv: np.ndarray | None = field(default=None, compare=False, repr=False)  # [n_fixed] into the queries
 
 
-def _merge_counts(comp: CompressionConfig, layer: int, frames: int, h: int, w: int, num_special: int):
-    """(r, r_frame, n_dst, n_src, protected-src bound) of a layer."""
-    L = num_special + h * w
-    N = frames * L
-    part = partition(frames, h, w, num_special, comp.dst_seed)
-    n_dst, n_src = part.dst_pos.size, part.src_pos.size
+def _merge_counts(comp: CompressionConfig, layer: int, geom: Geometry, part: Partition):
+    """(r, r_frame) of a layer."""
+    N = geom.tokens
+    n_src = part.src_pos.size
     rho = comp.layer_merge_ratio(layer)
-    protected_per_frame = saliency_protect_count(h, w, comp.alpha) if comp.protect == "saliency" else 0
+    protected_per_frame = saliency_protect_count(geom, comp.alpha) if comp.protect == "saliency" else 0
     if comp.match_scope == "sequence":
         if comp.protect == "stride":
             p_src = int((~part.is_dst[stride_protected(N, comp.alpha)]).sum())
         else:
-            p_src = (frames - 1) * protected_per_frame
-        r = max(0, min(int(N * rho), n_src - p_src))
-        return r, 0, n_dst, n_src
+            p_src = (geom.frames - 1) * protected_per_frame
+        return max(0, min(int(N * rho), n_src - p_src)), 0
     n_src_f = part.src_pos_f.shape[1]
-    if comp.protect == "stride" and frames > 1:
+    if comp.protect == "stride" and geom.frames > 1:
         prot = np.zeros(N, bool)
         prot[stride_protected(N, comp.alpha)] = True
         protected_src_per_frame = int(prot[part.src_pos_f].sum(axis=1).max())
     else:
         protected_src_per_frame = protected_per_frame
-    r_f = max(0, min(int(L * rho), n_src_f - protected_src_per_frame)) if frames > 1 else 0
-    return (frames - 1) * r_f, r_f, n_dst, n_src
+    r_f = max(0, min(int(geom.per_frame * rho), n_src_f - protected_src_per_frame)) if geom.frames > 1 else 0
+    return (geom.frames - 1) * r_f, r_f
 
 
-def _protected_count(comp: CompressionConfig, frames: int, h: int, w: int, num_special: int) -> int:
+def _protected_count(comp: CompressionConfig, geom: Geometry) -> int:
     """Upper bound on protected tokens (exact for stride protection)."""
     if comp.protect == "saliency":
-        return (frames - 1) * saliency_protect_count(h, w, comp.alpha)
+        return (geom.frames - 1) * saliency_protect_count(geom, comp.alpha)
     if comp.protect == "stride":
-        return int(stride_protected(frames * (num_special + h * w), comp.alpha).size)
+        return int(stride_protected(geom.tokens, comp.alpha).size)
     return 0
 
 
-def _expected_duplicates(comp: CompressionConfig, part, keep: np.ndarray | None, frames: int, h: int, w: int,
-                         num_special: int) -> float:
+def _expected_duplicates(comp: CompressionConfig, part: Partition, keep: np.ndarray | None, geom: Geometry) -> float:
     """Expected duplicated protected tokens: those that are dst (and kept as K/V when
     `keep` [N] masks the duplicates). Exact for stride protection; for saliency, the
     top patches of frames >= 1 are taken to fall anywhere in their frame."""
     ok = part.is_dst if keep is None else part.is_dst & keep
     if comp.protect == "stride":
-        return float(ok[stride_protected(frames * (num_special + h * w), comp.alpha)].sum())
-    L = num_special + h * w
-    pos = np.arange(L, frames * L)
-    later_patches = pos[pos % L >= num_special]  # where saliency protection can fall
+        return float(ok[stride_protected(geom.tokens, comp.alpha)].sum())
+    L = geom.per_frame
+    pos = np.arange(L, geom.tokens)
+    later_patches = pos[pos % L >= geom.num_special]  # where saliency protection can fall
     if not later_patches.size:
         return 0.0
-    return _protected_count(comp, frames, h, w, num_special) * float(ok[later_patches].mean())
+    return _protected_count(comp, geom) * float(ok[later_patches].mean())
 
 
 @functools.lru_cache(maxsize=4096)
-def layer_plan(comp: CompressionConfig, layer: int, frames: int, h: int, w: int, num_special: int) -> LayerPlan:
-    L = num_special + h * w
-    N = frames * L
+def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan:
+    """The static plan of global layer `layer` over a sequence of shape `geom`."""
+    L = geom.per_frame
+    N = geom.tokens
     kind = comp.layer_kind(layer)
     tile = comp.layer_tile(layer)
-    base = dict(layer=layer, frames=frames, tokens=N, per_frame=L, tile=tile, scope=comp.match_scope,
-                metric=comp.layer_metric(layer), protect_per_frame=0)
-    if kind in ("dense", "frame"):
-        return LayerPlan(kind=kind, r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all",
-                         n_fixed=L if kind == "frame" else N, n_dyn=0, n_dup=0,
-                         n_kv=L if kind == "frame" else N, expected_dyn=0.0, expected_dup=0.0, masked=False,
-                         size_column=False, match="none", match_key=None, r_frame=0, match_pairs=0, **base)
+    base = dict(layer=layer, geometry=geom, frames=geom.frames, tokens=N, per_frame=L, tile=tile,
+                scope=comp.match_scope, metric=comp.layer_metric(layer), protect_per_frame=0)
+    # what a layer without merging or K/V selection has (DENSE: every token; FRAME: per frame)
+    uncompressed = dict(r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all", n_dyn=0, n_dup=0,
+                        expected_dyn=0.0, expected_dup=0.0, masked=False, size_column=False, match="none",
+                        match_key=None, r_frame=0, match_pairs=0)
+    if kind in (LayerKind.DENSE, LayerKind.FRAME):
+        keys = L if kind == LayerKind.FRAME else N
+        return LayerPlan(kind=kind, n_fixed=keys, n_kv=keys, **uncompressed, **base)
 
-    r, r_f, n_dst, n_src = _merge_counts(comp, layer, frames, h, w, num_special)
+    part = partition(geom, comp.dst_seed)
+    n_dst, n_src = part.dst_pos.size, part.src_pos.size
+    r, r_f = _merge_counts(comp, layer, geom, part)
     kv_keeps_protected = comp.kv_protect_saliency and comp.protect == "saliency" and tile != (1, 1)
-    p_max = _protected_count(comp, frames, h, w, num_special)
-    protected_per_frame = saliency_protect_count(h, w, comp.alpha) if comp.protect == "saliency" else 0
-    base["protect_per_frame"] = protected_per_frame
-    keep = kv_static_keep(frames, h, w, num_special, tile, comp.phase_shift, comp.anchor)
+    p_max = _protected_count(comp, geom)
+    base["protect_per_frame"] = saliency_protect_count(geom, comp.alpha) if comp.protect == "saliency" else 0
+    keep = kv_static_keep(geom, tile, comp.phase_shift, comp.anchor)
+    index = dict(partition=part, kv_keep=keep)
 
     if r == 0:
         # No merging: queries are the tokens in their own order.
         if tile == (1, 1):
-            return LayerPlan(kind="dense", r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="all",
-                             n_fixed=N, n_dyn=0, n_dup=0, n_kv=N, expected_dyn=0.0, expected_dup=0.0,
-                             masked=False, size_column=False, match="none", match_key=None, r_frame=0,
-                             match_pairs=0, **base)
+            return LayerPlan(kind=LayerKind.DENSE, n_fixed=N, n_kv=N, **uncompressed, **base)
         n_fixed = int(keep.sum())
         n_dyn = min(N - n_fixed, p_max) if kv_keeps_protected else 0
         # Expected protected non-kept patches: protection independent of the grid.
         exp_dyn = p_max * (1.0 - n_fixed / N) if kv_keeps_protected else 0.0
-        return LayerPlan(kind="kv", r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="select",
+        return LayerPlan(kind=LayerKind.KV, r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="select",
                          n_fixed=n_fixed, n_dyn=n_dyn, n_dup=0, n_kv=n_fixed + n_dyn, expected_dyn=exp_dyn,
                          expected_dup=0.0, masked=n_dyn > 0, size_column=n_dyn > 0, match="none",
-                         match_key=None, r_frame=0, match_pairs=0, **base)
+                         match_key=None, r_frame=0, match_pairs=0, fixed_kv=_ro(np.flatnonzero(keep)),
+                         **index, **base)
 
-    part = partition(frames, h, w, num_special, comp.dst_seed)
     U = n_src - r
     n_query = n_dst + U
     key = comp.cache_key(layer)
     match = "compute"
     if key is not None:
         for prev in range(layer):
-            if (comp.layer_kind(prev) == "compressed" and comp.cache_key(prev) == key
-                    and _merge_counts(comp, prev, frames, h, w, num_special)[0] > 0):
+            if (comp.layer_kind(prev) == LayerKind.COMPRESSED and comp.cache_key(prev) == key
+                    and _merge_counts(comp, prev, geom, part)[0] > 0):
                 match = "reuse"
                 break
     if comp.match_scope == "sequence":
         pairs = n_src * n_dst
     else:
-        pairs = (frames - 1) * part.src_pos_f.shape[1] * part.dst_rank_f.shape[1]
+        pairs = (geom.frames - 1) * part.src_pos_f.shape[1] * part.dst_rank_f.shape[1]
 
     n_dup = p_max if comp.duplicate_protected else 0
     if tile == (1, 1):
@@ -182,25 +189,16 @@ def layer_plan(comp: CompressionConfig, layer: int, frames: int, h: int, w: int,
         dup_masked = not kv_keeps_protected
     exp_dup = 0.0
     if n_dup:
-        exp_dup = _expected_duplicates(comp, part, keep if dup_masked else None, frames, h, w, num_special)
+        exp_dup = _expected_duplicates(comp, part, keep if dup_masked else None, geom)
     # a duplicate slot is empty when its protected token is a src (or off the K/V grid)
     masked = n_dyn > 0 or n_dup > 0
-    return LayerPlan(kind="merge", r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query, kv_mode=kv_mode,
-                     n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
+    return LayerPlan(kind=LayerKind.MERGE, r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query,
+                     kv_mode=kv_mode, n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
                      expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
                      size_column=masked or comp.size_bias,
-                     match=match, match_key=key, r_frame=r_f, match_pairs=pairs, **base)
-
-
-@functools.lru_cache(maxsize=1024)
-def fixed_kv_index(comp: CompressionConfig, layer: int, frames: int, h: int, w: int, num_special: int) -> np.ndarray:
-    """[n_fixed] static K/V slots as indices into the layer's query layout."""
-    plan = layer_plan(comp, layer, frames, h, w, num_special)
-    keep = kv_static_keep(frames, h, w, num_special, plan.tile, comp.phase_shift, comp.anchor)
-    if plan.kind == "kv":
-        return _ro(np.flatnonzero(keep))
-    part = partition(frames, h, w, num_special, comp.dst_seed)
-    return _ro(np.flatnonzero(keep[part.dst_pos]))
+                     match=match, match_key=key, r_frame=r_f, match_pairs=pairs,
+                     fixed_kv=_ro(np.flatnonzero(keep[part.dst_pos])) if kv_mode == "select" else None,
+                     **index, **base)
 
 
 def padded_head_dim(d: int, size_column: bool, multiple: int) -> int:

@@ -21,7 +21,7 @@ import numpy as np
 
 from rvggt_jax import layers
 from rvggt_jax.chunks import dynamic_slice, zeros_after
-from rvggt_jax.config import DPTHeadConfig, VGGTConfig
+from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.heads.camera import inverse_log_transform
 from rvggt_jax.types import Params
 
@@ -278,15 +278,16 @@ def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[jax.A
     return [aggregated[i] for i in layer_idx]
 
 
-def dpt_features(params: Params, aggregated: Aggregated, image_hw: tuple[int, int], patch_start_idx: int, *,
-                 layer_idx: Sequence[int] = (4, 11, 17, 23), patch_size: int = 14, down_ratio: int = 2,
-                 pos_embed: bool = False) -> jax.Array:
+def dpt_features(params: Params, aggregated: Aggregated, grid: TokenGrid, *,
+                 layer_idx: Sequence[int] = (4, 11, 17, 23), down_ratio: int = 2, pos_embed: bool = False) -> jax.Array:
     """Feature-only DPT (upstream `DPTHead(feature_only=True)`, the track head's extractor).
 
-    aggregated: aggregator tokens, each [B, S, P, 2E]; image_hw: (H, W) of the input
-    images. Returns [B, S, h*p/down_ratio, w*p/down_ratio, F] with h = H // patch_size,
-    w = W // patch_size and F the width of `scratch.output_conv1`. The defaults are the
-    track head's (down_ratio 2, no positional embedding)."""
+    aggregated: aggregator tokens, each [B, S, P, 2E]; grid: the images' `TokenGrid`.
+    Returns [B, S, h*p/down_ratio, w*p/down_ratio, F] with (h, w) = `grid.hw`, p the patch
+    size and F the width of `scratch.output_conv1`. The defaults are the track head's
+    (down_ratio 2, no positional embedding)."""
+    image_hw, patch_start_idx, patch_size = grid.image_hw, grid.patch_start_idx, grid.patch_size
+
     def per_frames(tokens):
         return _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, down_ratio)
 
@@ -353,17 +354,17 @@ def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start
     return per_frames
 
 
-def dpt_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int], patch_start_idx: int,
-             config: DPTHeadConfig, *, patch_size: int = 14, activation: str = "inv_log",
-             conf_activation: str = "expp1") -> tuple[jax.Array, jax.Array]:
+def dpt_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid, *,
+             activation: str = "inv_log", conf_activation: str = "expp1") -> tuple[jax.Array, jax.Array]:
     """Dense DPT prediction (upstream `DPTHead`, not feature-only).
 
     aggregated: aggregator tokens, each [B, S, P, 2E] (list of all layers or dict by layer
-    index); image_hw: (H, W) of the input images. Returns (pred [B, S, H', W', C-1],
+    index); grid: the images' `TokenGrid` ((H, W), patch size). Returns (pred [B, S, H', W', C-1],
     conf [B, S, H', W']) with C the output_conv2 width and H' = H // patch_size * patch_size
     (= H for the usual multiples of the patch size), W' likewise."""
-    per_frames = _dpt_per_frames(params, config, image_hw, patch_start_idx, patch_size, activation, conf_activation)
-    pred, conf = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), image_hw)
+    per_frames = _dpt_per_frames(params, config, grid.image_hw, grid.patch_start_idx, grid.patch_size, activation,
+                                 conf_activation)
+    pred, conf = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw)
     chex.assert_equal_shape_prefix([pred, conf], 4)
     return pred, conf
 
@@ -373,35 +374,34 @@ DEPTH_ACTIVATIONS = ("exp", "expp1")
 POINT_ACTIVATIONS = ("inv_log", "expp1")
 
 
-def depth_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int],
-               config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
+def depth_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid
+               ) -> tuple[jax.Array, jax.Array]:
     """VGGT's depth head: (depth [B, S, H, W, 1] = exp, depth_conf [B, S, H, W] = 1 + exp)."""
-    return dpt_head(params, aggregated, image_hw, config.patch_start_idx, config.dpt_head,
-                    patch_size=config.patch_size, activation=DEPTH_ACTIVATIONS[0],
+    return dpt_head(params, aggregated, config, grid, activation=DEPTH_ACTIVATIONS[0],
                     conf_activation=DEPTH_ACTIVATIONS[1])
 
 
-def point_head(params: Params, aggregated: Aggregated, image_hw: tuple[int, int],
-               config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
+def point_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid
+               ) -> tuple[jax.Array, jax.Array]:
     """VGGT's point head: (world_points [B, S, H, W, 3] = inv_log, world_points_conf
     [B, S, H, W] = 1 + exp)."""
-    return dpt_head(params, aggregated, image_hw, config.patch_start_idx, config.dpt_head,
-                    patch_size=config.patch_size, activation=POINT_ACTIVATIONS[0],
+    return dpt_head(params, aggregated, config, grid, activation=POINT_ACTIVATIONS[0],
                     conf_activation=POINT_ACTIVATIONS[1])
 
 
-def dense_heads(params: Params, aggregated: Aggregated, image_hw: tuple[int, int],
-                config: VGGTConfig) -> dict[str, jax.Array]:
-    """The depth and point heads (those `config` enables) in one loop over groups of
-    frames: {"depth", "depth_conf", "world_points", "world_points_conf"} as
-    `depth_head` / `point_head` return them. One loop reads the kept aggregator layers
-    once; two loops would each need their own copy of them in XLA's plan (17 GB at 1000
-    frames of VGGT-1B in bfloat16)."""
+def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid
+                ) -> dict[str, jax.Array]:
+    """The depth and point heads whose params are given ({"depth_head": ...,
+    "point_head": ...}, either or both) in one loop over groups of frames: {"depth",
+    "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
+    return them. One loop reads the kept aggregator layers once; two loops would each
+    need their own copy of them in XLA's plan (17 GB at 1000 frames of VGGT-1B in
+    bfloat16)."""
     heads = {}
-    args = (config.dpt_head, image_hw, config.patch_start_idx, config.patch_size)
-    if config.enable_depth:
+    args = (config, grid.image_hw, grid.patch_start_idx, grid.patch_size)
+    if "depth_head" in params:
         heads[("depth", "depth_conf")] = _dpt_per_frames(params["depth_head"], *args, *DEPTH_ACTIVATIONS)
-    if config.enable_point:
+    if "point_head" in params:
         heads[("world_points", "world_points_conf")] = _dpt_per_frames(params["point_head"], *args,
                                                                        *POINT_ACTIVATIONS)
     if not heads:
@@ -410,5 +410,5 @@ def dense_heads(params: Params, aggregated: Aggregated, image_hw: tuple[int, int
     def per_frames(tokens):
         return {names: fn(tokens) for names, fn in heads.items()}
 
-    res = map_frame_groups(per_frames, _layers_read(aggregated, config.dpt_head.intermediate_layer_idx), image_hw)
+    res = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw)
     return {name: value for names, pair in res.items() for name, value in zip(names, pair)}

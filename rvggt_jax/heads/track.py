@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import jax
 
-from rvggt_jax.config import VGGTConfig
+from rvggt_jax.config import TokenGrid, TrackHeadConfig
 from rvggt_jax.frames import FrameShards
 from rvggt_jax.heads.dpt import Aggregated, dpt_features
 from rvggt_jax.heads.tracker import track_predictor
@@ -20,37 +20,35 @@ from rvggt_jax.types import Params
 FEATURE_DOWN_RATIO = 2
 
 
-def track_features(params: Params, aggregated: Aggregated, images: jax.Array, patch_start_idx: int,
-                   config: VGGTConfig) -> jax.Array:
+def track_features(params: Params, aggregated: Aggregated, config: TrackHeadConfig, grid: TokenGrid) -> jax.Array:
     """The track head's DPT feature maps: [B, S, H/2, W/2, features] (NHWC), with H, W the
     image size rounded down to multiples of the patch size."""
-    return dpt_features(params["feature_extractor"], aggregated, tuple(images.shape[-2:]), patch_start_idx,
-                        layer_idx=config.track_layer_idx, patch_size=config.patch_size,
+    if config.intermediate_layer_idx is None:
+        raise ValueError("the track head's intermediate_layer_idx is unset: pass VGGTConfig.track_head_config")
+    return dpt_features(params["feature_extractor"], aggregated, grid, layer_idx=config.intermediate_layer_idx,
                         down_ratio=FEATURE_DOWN_RATIO, pos_embed=False)
 
 
-def track_head(params: Params, aggregated: Aggregated, images: jax.Array, patch_start_idx: int,
-               query_points: jax.Array, config: VGGTConfig, iters: int | None = None,
-               shards: FrameShards | None = None) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+def track_head(params: Params, aggregated: Aggregated, config: TrackHeadConfig, grid: TokenGrid,
+               query_points: jax.Array, *, iters: int | None = None, shards: FrameShards | None = None
+               ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Upstream `TrackHead.forward`.
 
     params: the `track_head` subtree. aggregated: aggregator outputs, each [B, S, P, 2E]
     (a list of every layer, or a dict {layer index: tokens} holding at least
-    `config.track_layer_idx`). images [B, S, 3, H, W] (only its shape is read).
-    patch_start_idx: a Python int (first patch token in P). query_points [B, N, 2]: pixel
-    (x, y) in frame 0; an unbatched [N, 2] array is rejected, as by upstream's head
-    (the full model adds the batch axis before calling it). iters: refinement iterations,
-    default `config.track_head.iters`.
+    `config.intermediate_layer_idx`). config: the track head's sub-config with its
+    extractor's layers filled in (`VGGTConfig.track_head_config`). grid: the images'
+    `TokenGrid`. query_points [B, N, 2]: pixel (x, y) in frame 0; an unbatched [N, 2]
+    array is rejected, as by upstream's head (the full model adds the batch axis before
+    calling it). iters: refinement iterations, default `config.iters`.
 
     Returns (track_list [iters, B, S, N, 2] pixel (x, y), one entry per iteration, the last
     being the prediction; vis [B, S, N] and conf [B, S, N] in (0, 1), conf None when
-    `config.track_head.predict_conf` is off). `shards`: the frames of this device (see
+    `config.predict_conf` is off). `shards`: the frames of this device (see
     `track_predictor`).
     """
-    if images.ndim != 5:
-        raise ValueError(f"images must be [B, S, 3, H, W], got shape {images.shape}")
     if query_points.ndim != 3 or query_points.shape[-1] != 2:
         raise ValueError(f"query_points must be [B, N, 2] (add the batch axis to [N, 2]), "
                          f"got shape {query_points.shape}")
-    fmaps = track_features(params, aggregated, images, patch_start_idx, config)
-    return track_predictor(params["tracker"], query_points, fmaps, config.track_head, iters=iters, shards=shards)
+    fmaps = track_features(params, aggregated, config, grid)
+    return track_predictor(params["tracker"], query_points, fmaps, config, iters=iters, shards=shards)

@@ -285,11 +285,6 @@ def cross_attn_block(p: Params, x: jax.Array, context: jax.Array, num_heads: int
     return x + layers.mlp(p["mlp"], layers.layer_norm(p["norm2"], x))
 
 
-def _stack_blocks(blocks: Params) -> Params:
-    """Numbered children {"0": tree, "1": tree, ...} -> one tree with a leading block axis."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[blocks[str(i)] for i in range(len(blocks))])
-
-
 def update_former(p: Params, x: jax.Array, num_heads: int = UPDATE_FORMER_NUM_HEADS) -> jax.Array:
     """Upstream `EfficientUpdateFormer`: x [B, N, T, D_in] (tracks, frames) -> [B, N, T, D_out].
 
@@ -327,22 +322,16 @@ def update_former(p: Params, x: jax.Array, num_heads: int = UPDATE_FORMER_NUM_HE
         return jnp.swapaxes(jnp.concatenate([points, virt], axis=1).reshape(b, t, n_all, e), 1, 2)
 
     groups = space_depth or time_depth
-    time_p = jax.tree_util.tree_map(lambda a: a.reshape((groups, every) + a.shape[1:]),
-                                    _stack_blocks(p["time_blocks"]))
-    space_p = None
-    if space_depth:
-        space_p = tuple(_stack_blocks(p[name]) for name in
-                        ("space_virtual2point_blocks", "space_virtual_blocks", "space_point2virtual_blocks"))
+    space_names = ("space_virtual2point_blocks", "space_virtual_blocks", "space_point2virtual_blocks")
 
-    def group(tok, xs):
-        tp, sp = xs
+    def group(tok, g):  # time blocks g * every ... (g + 1) * every - 1, space blocks g
         for k in range(every):
-            tok = time_block(tok, jax.tree_util.tree_map(lambda a, k=k: a[k], tp))
-            if k == 0 and sp is not None:
-                tok = space_blocks(tok, *sp)
+            tok = time_block(tok, layers.select_block(p["time_blocks"], range(time_depth), g * every + k))
+            if k == 0 and space_depth:
+                tok = space_blocks(tok, *(layers.select_block(p[name], range(space_depth), g) for name in space_names))
         return tok, None
 
-    tokens, _ = jax.lax.scan(group, tokens, (time_p, space_p))
+    tokens, _ = jax.lax.scan(group, tokens, jnp.arange(groups))
     tokens = tokens[:, :n] + init_tokens
     return layers.linear(p["flow_head"], layers.layer_norm(p["output_norm"], tokens))
 
