@@ -148,7 +148,8 @@ def test_duplicate_protected_duplicates_only_protected_dst(block_params):
 
     x, sal = _data(7, s=s, h=h, w=w)  # stride protection ignores the saliency (its batch size only)
     pos = global_positions(s, h, w)
-    out, _ = global_block(block_params, x, pos, 0, cfg, init_state(cfg.compression, sal, Geometry(s, h, w, NS)))
+    state = init_state(cfg.compression, sal, Geometry(s, h, w, NS))
+    out = jax.jit(lambda x: global_block(block_params, x, pos, 0, cfg, state)[0])(x)  # (compiled: faster than eager)
     protected = np.zeros(n, bool)
     protected[stride_protected(n, cc.alpha)] = True
     xn = np.asarray(layers.layer_norm(block_params["norm1"], x), np.float64)
@@ -276,13 +277,14 @@ def test_block_refuses_shapes_that_differ_from_its_plan(block_params, monkeypatc
     x, sal = _data()
     pos = global_positions(S, H, W)
     state = init_state(cfg.compression, sal, geom)
-    global_block(block_params, x, pos, 0, cfg, state)  # the true plan passes
+    # (traced, not run: the check is at trace time)
+    jax.eval_shape(lambda x: global_block(block_params, x, pos, 0, cfg, state)[0], x)  # the true plan passes
     true_plan = layer_plan
     monkeypatch.setattr(block_mod, "layer_plan",
                         lambda comp, layer, g: dataclasses.replace(true_plan(comp, layer, g),
                                                                    n_kv=true_plan(comp, layer, g).n_kv + 1))
     with pytest.raises(AssertionError, match="the plan says"):
-        global_block(block_params, x, pos, 0, cfg, state)
+        jax.eval_shape(lambda x: global_block(block_params, x, pos, 0, cfg, state)[0], x)
 
 
 def test_global_block_computes_its_static_plan_once(block_params):
