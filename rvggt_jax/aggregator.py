@@ -221,8 +221,6 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
             p_global = layers.select_block(p["global_blocks"], group, i)
             x = layers.block(p_frame, x.reshape(b * s, num_tokens, c), config.num_heads, frame_pos,
                              config.rope_freq, dtype=dtype)
-            # (lax's dynamic update, not .at[k].set: the latter is a scatter that XLA
-            # lowers with a bounds check, out of place: a copy of the kept buffer per step)
             kept_frame = _write_slot(kept_frame, x.reshape(b, s, num_tokens, c), k, dtype)
             x = x.reshape(b, s * num_tokens, c)
             if state is None:
@@ -253,7 +251,9 @@ def _kept_buffer(shape: tuple[int, ...], dtype, dep: jax.Array):
 
 
 def _write_slot(buf, x: jax.Array, k: jax.Array, dtype):
-    """buf with slot k set to x in the compute dtype (in place)."""
+    """buf with slot k set to x in the compute dtype (in place). (lax's dynamic update,
+    not .at[k].set: the latter is a scatter that XLA lowers with a bounds check, out of
+    place: a copy of the kept buffer per step.)"""
     if isinstance(buf, chunks.Bits16):
         return buf.update_index(x, k)
     return jax.lax.dynamic_update_index_in_dim(buf, x.astype(dtype), k, 0)

@@ -217,6 +217,7 @@ def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, 
 
     def body(i, a):
         start = jnp.minimum(i * rows, n - rows)
+
         def chunk_of(tree):
             return jax.tree.map(lambda t: dynamic_slice(t, start, rows, axis), tree)
 
@@ -235,23 +236,39 @@ def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, 
 
 
 def fold_owned(step, x: jax.Array, acc, inputs: tuple, n: int, rows: int):
-    """(x, acc) with acc = step(acc, *input_chunks, x_chunk) over chunks of `rows` tokens
-    (axis 1) of the inputs and x, as `fold_tokens`, in a loop that owns x: each chunk of x
-    is written back unchanged (made from the step's result, so XLA keeps the write), for
-    the reason given in `read_tokens`. The shorter tail only reads x."""
+    """(x, acc) with acc = step(acc, x_chunk, *input_chunks) over chunks of `rows` tokens
+    (axis 1) of x and the inputs, as `fold_tokens`, in a loop that owns x (each chunk of x
+    written back unchanged, `_written_back`), for the reason given in `read_tokens`. The
+    shorter tail only reads x."""
     count = n // rows
 
     def body(i, carry):
         xs, a = carry
         xc = dynamic_slice(xs, i * rows, rows, 1)
-        a = step(a, *[dynamic_slice(t, i * rows, rows, 1) for t in inputs], xc)
-        back = xc + sum(zeros_after((), xc.dtype, t) for t in jax.tree.leaves(a))
-        return jax.lax.dynamic_update_slice_in_dim(xs, back, i * rows, 1), a
+        a = step(a, xc, *[dynamic_slice(t, i * rows, rows, 1) for t in inputs])
+        return jax.lax.dynamic_update_slice_in_dim(xs, _written_back(xc, a), i * rows, 1), a
 
     x, acc = jax.lax.fori_loop(0, count, body, (x, acc))
     if count * rows < n:
-        acc = step(acc, *[jax.lax.slice_in_dim(t, count * rows, n, axis=1) for t in (*inputs, x)])
+        acc = step(acc, *[jax.lax.slice_in_dim(t, count * rows, n, axis=1) for t in (x, *inputs)])
     return x, acc
+
+
+def _written_back(xc: jax.Array, made_from) -> jax.Array:
+    """x's chunk, unchanged, to write back into the x a loop owns: made from the loop's
+    results (+ 0), so that XLA cannot drop the write as a no-op."""
+    return xc + sum(zeros_after((), xc.dtype, o) for o in jax.tree.leaves(made_from))
+
+
+def _zero_outputs(fn, chunk_inputs: list, n: int, axis: int, dep: jax.Array):
+    """Zero buffers, made after `dep`, for fn's outputs stitched over all `n` rows along
+    `axis` (fn's output shapes from one chunk of its inputs)."""
+    def full(o):
+        shape = list(o.shape)
+        shape[axis] = n
+        return zeros_after(tuple(shape), o.dtype, dep)
+
+    return jax.tree.map(full, jax.eval_shape(fn, *chunk_inputs))
 
 
 def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_per_row: int = 0,
@@ -265,14 +282,9 @@ def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_
     if rows >= n:
         return fn(*inputs)
     _, size = even_chunks(n, rows, multiple)
-    spec = jax.eval_shape(lambda *c: fn(*c), *[dynamic_slice(t, 0, size, axis) for t in inputs])
-
-    def full(o):
-        shape = list(o.shape)
-        shape[axis] = n
-        return zeros_after(tuple(shape), o.dtype, inputs[0] if dep is None else dep)
-
-    return _sweep(lambda _, *c: fn(*c), jax.tree.map(full, spec), inputs, n, axis, rows, multiple)
+    outs = _zero_outputs(fn, [dynamic_slice(t, 0, size, axis) for t in inputs], n, axis,
+                         inputs[0] if dep is None else dep)
+    return _sweep(lambda _, *c: fn(*c), outs, inputs, n, axis, rows, multiple)
 
 
 def read_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,
@@ -286,19 +298,13 @@ def read_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int |
     if rows >= n:
         return x, fn(x, *inputs)
     _, size = even_chunks(n, rows, multiple)
-    spec = jax.eval_shape(lambda *c: fn(*c), *[dynamic_slice(t, 0, size, axis) for t in (x, *inputs)])
-
-    def full(o):
-        shape = list(o.shape)
-        shape[axis] = n
-        return zeros_after(tuple(shape), o.dtype, x)
+    outs = _zero_outputs(fn, [dynamic_slice(t, 0, size, axis) for t in (x, *inputs)], n, axis, x)
 
     def both(xc, *c):
         out = fn(xc, *c)
-        # written back made from the results, so that XLA cannot drop the write
-        return xc + sum(zeros_after((), xc.dtype, o) for o in jax.tree.leaves(out)), out
+        return _written_back(xc, out), out
 
-    return _sweep(both, (x, jax.tree.map(full, spec)), inputs, n, axis, rows, multiple, lambda a: a[0])
+    return _sweep(both, (x, outs), inputs, n, axis, rows, multiple, lambda a: a[0])
 
 
 def update_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,

@@ -192,25 +192,21 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     def merged(parts, after=None):
         fn = layers.qkv_fn(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
         if not shards.sharded:
-            # each sum made after the previous mean; the loops own x (see chunks.read_tokens)
+            # each sum made after the match, then after the previous mean; the loops own x
+            # (see chunks.read_tokens)
             xo, mean = merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
-                                           dep=after, owned=True)
+                                           dep=match.group if after is None else after, owned=True)
             return xo, mean
         # one of q, k, v at a time: each projected after the previous one is summed
         xs = x if after is None else jax.lax.optimization_barrier((x, after))[0]
         vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
                                  dep=xs if after is None else after)[0]
         sums = shards.ring_sum_scatter(lambda block: merge_lib.block_sums(vals, group - block * rows, rows))
-        return (sums / sizes_own[..., None, None]).astype(vals.dtype)
+        return x, (sums / sizes_own[..., None, None]).astype(vals.dtype)
 
-    if shards.sharded:
-        qm = merged("q")  # [B, rows, H, D]: this device's merged rows
-        km = merged("k", qm)
-        vm = merged("v", km)
-    else:
-        x, qm = merged("q", match.group)
-        x, km = merged("k", qm)
-        x, vm = merged("v", km)
+    x, qm = merged("q")  # [B, rows, H, D]: this device's merged rows
+    x, km = merged("k", qm)
+    x, vm = merged("v", km)
     # Over devices, the keys are every device's merged rows, passed around (those the
     # layer does not keep masked out: each device holds two devices' rows at a time
     # instead of every kept row)
