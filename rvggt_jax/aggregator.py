@@ -202,11 +202,13 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
         state = compression.init_state(config.compression, shards.gather(saliency, 1), geom, shards)
 
     x = tokens.reshape(b, s * num_tokens, c)
-    # Made from the tokens: a constant buffer would be allocated at the program start,
-    # alive through the patch embed (chunks.zeros_after). Two distinct values: one buffer
-    # for both would make XLA copy it inside the layer loop.
+    # Made after the patch embed, from its saliency: a constant buffer would be allocated
+    # at the program start, alive through the patch embed (chunks.zeros_after). Not from
+    # the tokens: XLA folds the zeros into the first layer's write, which would keep the
+    # tokens alive (and copied) through that layer. Two distinct values: one buffer for
+    # both would make XLA copy it inside the layer loop.
     shape = (len(keep) + spare, b, s, num_tokens, c)
-    kept_frame = _kept_buffer(shape, dtype, tokens)
+    kept_frame = _kept_buffer(shape, dtype, saliency)
     kept_global = _kept_buffer(shape, dtype, jax.tree.leaves(kept_frame)[0])
     for group in layer_groups(config, geom):
         # a group of layers that compute and store a band's match carries the last one out

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.chunks import dynamic_index, zeros_after
+from rvggt_jax.chunks import Bits16, is_16bit_float, dynamic_index, zeros_after
 
 if TYPE_CHECKING:
     from rvggt_jax.frames import FrameShards
@@ -110,13 +110,21 @@ def _blocked(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
     n, rows = query_blocks(nq, nk, 4, block_bytes)
     qb = jnp.pad(qt, ((0, 0), (0, 0), (0, n * rows - nq), (0, 0))).reshape(b * h * n, rows, d)
     kt, vt = kt.reshape(b * h, d, nk), vt.reshape(b * h, nk, dv)
+    # 16-bit operands as bits from the start: a 16-bit slice in the loop is made from a
+    # bit view that XLA would copy whole out of the loop, next to the operand itself
+    qb, kt, vt = (Bits16.of(t) if is_16bit_float(t) else t for t in (qb, kt, vt))
+
+    def index(t, i):
+        if isinstance(t, Bits16):  # (a plain slice: `read` applies it to bits and to tangents)
+            return t.read(lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)
+        return dynamic_index(t, i)
 
     def body(i, acc):
         out, lse = acc
         pair = i // n  # (batch, head) pair of this block
-        kb, vb = dynamic_index(kt, pair), dynamic_index(vt, pair)
+        kb, vb = index(kt, pair), index(vt, pair)
         bb = None if bias is None else dynamic_index(bias[:, 0], pair // h)
-        res, res_lse = _softmax_attend(dynamic_index(qb, i), kb, vb, bb)
+        res, res_lse = _softmax_attend(index(qb, i), kb, vb, bb)
         return (jax.lax.dynamic_update_index_in_dim(out, res.astype(out.dtype), i, 0),
                 jax.lax.dynamic_update_index_in_dim(lse, res_lse, i, 0))
 

@@ -45,7 +45,7 @@ def row_chunks(n_rows: int, bytes_per_row: int, chunk_bytes: int | None = None, 
     return n_rows if rows >= n_rows else rows
 
 
-def _is_16bit_float(x: jax.Array) -> bool:
+def is_16bit_float(x: jax.Array) -> bool:
     return x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating)
 
 
@@ -70,7 +70,7 @@ def dynamic_slice(x: jax.Array, start, size: int, axis: int) -> jax.Array:
     bfloat16 dynamic slice: it converts the *whole* operand to float32 and, the operand
     being loop-invariant, hoists that copy out of the loop (a float32 copy of K, V or
     every kept layer). Slicing the bits is exact and lets only the slice be converted."""
-    if _is_16bit_float(x):
+    if is_16bit_float(x):
         return _via_bits(lambda t, s: jax.lax.dynamic_slice_in_dim(t, s, size, axis), x, start)
     return jax.lax.dynamic_slice_in_dim(x, start, size, axis)
 
@@ -94,6 +94,11 @@ class Bits16:
     @classmethod
     def zeros_after(cls, shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> "Bits16":
         return cls(zeros_after(shape, jnp.uint16, dep), zeros_after(shape, dtype, dep))
+
+    @classmethod
+    def of(cls, x: jax.Array) -> "Bits16":
+        """x (16-bit floats) as its bits, x itself the shadow (its derivatives)."""
+        return cls(jax.lax.bitcast_convert_type(jax.lax.stop_gradient(x), jnp.uint16), x)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -147,7 +152,7 @@ def _load_bits_jvp(op, primals, tangents):
 def take(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
     """`jnp.take(x, idx, axis, mode="clip")`, through a uint16 view for 16-bit
     floats, for the same reason as `dynamic_slice` (XLA:CPU has no bfloat16 gather)."""
-    if _is_16bit_float(x):
+    if is_16bit_float(x):
         return _via_bits(lambda t, i: jnp.take(t, i, axis=axis, mode="clip"), x, idx)
     return jnp.take(x, idx, axis=axis, mode="clip")
 
@@ -156,7 +161,7 @@ def take_along(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
     """`jnp.take_along_axis(x, idx, axis)` (indices in bounds, idx broadcast over x's
     trailing axes), through a uint16 view for 16-bit floats."""
     idx = idx.reshape(idx.shape + (1,) * (x.ndim - idx.ndim))
-    if _is_16bit_float(x):
+    if is_16bit_float(x):
         return _via_bits(lambda t, i: jnp.take_along_axis(t, i, axis=axis, mode="promise_in_bounds"), x, idx)
     return jnp.take_along_axis(x, idx, axis=axis, mode="promise_in_bounds")
 
@@ -201,19 +206,26 @@ def even_chunks(n: int, rows: int, multiple: int = 1) -> tuple[int, int]:
     return count, min(n, -(-size // multiple) * multiple)
 
 
-def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, reader=None):
-    """The in-place chunk loop of `map_tokens` and `update_tokens`: `count` chunks of
-    `rows` (`even_chunks`), chunk i written at min(i * rows, n - rows). Where the last
-    chunk overlaps the one before (n not a multiple of rows), the overlap keeps what is
-    already written (the rows are masked), so every row is computed once from its own
-    inputs. Why not a loop plus a shorter tail chunk: the tail is a second update of the
-    loop's result outside the loop, and XLA then copies the whole buffer (the residual
-    stream, 4 GB at 1000 frames of VGGT-1B) for each consumer of the result.
+def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, reader=None,
+           in_place: bool = False):
+    """The chunk loop of `map_tokens`, `read_tokens` and `update_tokens`: `count` chunks
+    of `rows` (`even_chunks`), chunk i written at min(i * rows, n - rows). Why not a loop
+    plus a shorter tail chunk: the tail is a second update of the loop's result outside
+    the loop, and XLA then copies the whole buffer (the residual stream, 4 GB at 1000
+    frames of VGGT-1B) for each consumer of the result.
+
+    Where the last chunk overlaps the one before (n not a multiple of rows): a new array
+    (`in_place` False) takes the overlapped rows again, computed from the same inputs; an
+    array updated in place (`in_place`, `update_tokens`) keeps them (masked), since they
+    are already updated. Reading the written rows back is what an update in place must
+    do, and what a new array must not: for a 16-bit array, XLA:CPU turns that read into a
+    float32 round trip of the whole buffer and a copy of it in every step (4 x 1.5 GB per
+    merging layer at 1000 frames of VGGT-1B in bfloat16).
 
     fn(chunk of reader(acc) or None, *input_chunks) -> the chunk's new values (a pytree
     like acc)."""
     count, rows = even_chunks(n, rows, multiple)
-    overlap = count * rows != n
+    overlap = in_place and count * rows != n
 
     def body(i, a):
         start = jnp.minimum(i * rows, n - rows)
@@ -288,17 +300,19 @@ def map_tokens(fn, inputs: tuple, axis: int = 1, rows: int | None = None, bytes_
 
 
 def read_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int | None = None,
-                bytes_per_row: int = 0, multiple: int = 8):
+                bytes_per_row: int = 0, multiple: int = 8, dep: jax.Array | None = None):
     """(x, fn(x_chunk, *input_chunks) stitched as in `map_tokens`), where the loop also
     owns x: each chunk of x is written back unchanged. A loop that only reads x passes it
     through, and XLA then copies x for the next loop that updates it in place (4 GB per
-    layer at 1000 frames of VGGT-1B); owning it keeps one buffer from loop to loop."""
+    layer at 1000 frames of VGGT-1B); owning it keeps one buffer from loop to loop.
+    dep: the outputs are made after this value (default x), as in `map_tokens`."""
     n = x.shape[axis]
     rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
     if rows >= n:
         return x, fn(x, *inputs)
     _, size = even_chunks(n, rows, multiple)
-    outs = _zero_outputs(fn, [dynamic_slice(t, 0, size, axis) for t in (x, *inputs)], n, axis, x)
+    outs = _zero_outputs(fn, [dynamic_slice(t, 0, size, axis) for t in (x, *inputs)], n, axis,
+                         x if dep is None else dep)
 
     def both(xc, *c):
         out = fn(xc, *c)
@@ -316,4 +330,4 @@ def update_tokens(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows: int
     rows = row_chunks(n, bytes_per_row, multiple=multiple) if rows is None else rows
     if rows >= n:
         return fn(x, *inputs)
-    return _sweep(fn, x, inputs, n, axis, rows, multiple, lambda a: a)
+    return _sweep(fn, x, inputs, n, axis, rows, multiple, lambda a: a, in_place=True)

@@ -172,22 +172,24 @@ class FrameShards:
 
         return jax.tree.map(shift, tree)
 
-    def ring_sum_scatter(self, contribution: Callable[[jax.Array], jax.Array]) -> jax.Array:
-        """Sum over devices of `contribution(block)` (this device's part of block `block`
-        of an axis split in `devices` blocks), each device ending with the sum of its own
-        block: a reduce-scatter whose blocks are made one at a time (the running sum
-        travels around the devices, each adding its part), so no device ever holds more
-        than two blocks. One device: contribution(0)."""
+    def ring_sum_scatter(self, contribution: Callable[[jax.Array, jax.Array | None], jax.Array]) -> jax.Array:
+        """Sum over devices of this device's part of each block of an axis split in
+        `devices` blocks, each device ending with the sum of its own block:
+        `contribution(block, acc)` adds this device's part of block `block` to `acc`
+        (None: to zeros), in place where it can. A reduce-scatter whose blocks are made
+        one at a time (the running sum travels around the devices, each adding its part
+        into the sum it received), so no device ever holds more than two blocks. One
+        device: contribution(0, None)."""
         if not self.sharded:
-            return contribution(0)
+            return contribution(0, None)
         n, d = self.devices, self.index()
 
         # step t: add this device's part of block (d - t - 1) mod n to the sum received
         # for it; after n - 1 steps that block is d, summed over every device
         def step(t, acc):
-            return self.ring_shift(acc) + contribution((d - t - 1) % n)
+            return contribution((d - t - 1) % n, self.ring_shift(acc))
 
-        return jax.lax.fori_loop(1, n, step, contribution((d - 1) % n))
+        return jax.lax.fori_loop(1, n, step, contribution((d - 1) % n, None))
 
     def ring_take(self, blocks: jax.Array, idx: jax.Array) -> jax.Array:
         """Rows idx [B, M] (global indices) of an axis split in blocks of R rows per

@@ -72,3 +72,31 @@ def test_kept_layers_are_never_converted_whole(plans):
     assert converts  # the pattern still matches XLA's text
     sizes = [math.prod(int(d) for d in dims.split(",") if d) for dims in converts]
     assert whole not in sizes, f"a whole kept buffer ({whole} values) is converted"
+
+
+@pytest.mark.parametrize("fn", ["map_tokens", "read_tokens"])
+def test_16bit_chunk_outputs_are_written_in_place(fn):
+    # A bfloat16 result stitched from chunks whose last chunk overlaps the one before (n
+    # not a multiple of the chunk) is written in place: reading the written rows back made
+    # XLA:CPU copy the whole result in every step (chunks._sweep), a temporary as large as
+    # the result.
+    import jax
+    import jax.numpy as jnp
+
+    from rvggt_jax import chunks
+
+    n, c, rows = 10_001, 256, 1_024  # 10 chunks of 1,008 rows: the last overlaps
+    x = jax.ShapeDtypeStruct((1, n, c), jnp.float32)
+
+    def half(xc):
+        return (xc * 2).astype(jnp.bfloat16)
+
+    def run(x):
+        if fn == "map_tokens":
+            return chunks.map_tokens(half, (x,), rows=rows)
+        return chunks.read_tokens(half, x, rows=rows)  # (x too: an argument it owns is copied)
+
+    compiled = jax.jit(run).lower(x).compile()
+    result_bytes = n * c * 2
+    assert compiled.memory_analysis().output_size_in_bytes >= result_bytes
+    assert compiled.memory_analysis().temp_size_in_bytes < result_bytes / 4

@@ -197,12 +197,13 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
             xo, mean = merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
                                            dep=match.group if after is None else after, owned=True)
             return xo, mean
-        # one of q, k, v at a time: each projected after the previous one is summed
-        xs = x if after is None else jax.lax.optimization_barrier((x, after))[0]
-        vals = chunks.map_tokens(fn, (xs, pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
-                                 dep=xs if after is None else after)[0]
-        sums = shards.ring_sum_scatter(lambda block: merge_lib.block_sums(vals, group - block * rows, rows))
-        return x, (sums / sizes_own[..., None, None]).astype(vals.dtype)
+        # one of q, k, v at a time: each projected after the previous one is summed; the
+        # projecting loop owns x (chunks.read_tokens)
+        xs, (vals,) = chunks.read_tokens(fn, x, (pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
+                                         dep=match.group if after is None else after)
+        sums = shards.ring_sum_scatter(
+            lambda block, acc: merge_lib.block_sums(vals, group - block * rows, rows, into=acc))
+        return xs, (sums / sizes_own[..., None, None]).astype(vals.dtype)
 
     x, qm = merged("q")  # [B, rows, H, D]: this device's merged rows
     x, km = merged("k", qm)
@@ -265,6 +266,9 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         # column exact)
         extra = () if dup is None else ((dup[0], dup[1], bias(dup[2], dup[3], plan.masked)),)
         log_g = bias(g, valid, True)
+        # Q and K made (transposed, blocked) after V's sums: else XLA does it early and
+        # they sit through V's sums (the "+ 0" fuses into the consumers)
+        qm, kk = (t + chunks.zeros_after((), t.dtype, vm) for t in (qm, kk))
         out = ring_attention(qm, kk, vv, log_g, shards, extra)
     else:
         log_g = bias(g, valid, plan.masked) if plan.size_column else None

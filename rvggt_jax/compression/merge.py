@@ -281,12 +281,13 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
     return (x0, *means) if owned else means
 
 
-def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
+def block_sums(values: jax.Array, group: jax.Array, rows: int, into: jax.Array | None = None) -> jax.Array:
     """Float32 sums [B, rows, ...] of values [B, N, ...] over the groups group [B, N]
-    (tokens whose group is outside [0, rows) are left out): one block of the group sums
-    (over devices, the block `ring_sum_scatter` is making). Token chunks are cast to
-    float32 and added one at a time: a float32 copy of all the values would be a
-    loop-invariant XLA hoists out of the ring."""
+    (tokens whose group is outside [0, rows) are left out), added to `into` (default
+    zeros): one block of the group sums (over devices, the block `ring_sum_scatter` is
+    making, added in place to the sum received). Token chunks are cast to float32 and
+    added one at a time: a float32 copy of all the values would be a loop-invariant XLA
+    hoists out of the ring."""
     b, n = values.shape[:2]
     offsets = (jnp.arange(b, dtype=jnp.int32) * rows)[:, None]
 
@@ -295,8 +296,11 @@ def block_sums(values: jax.Array, group: jax.Array, rows: int) -> jax.Array:
         ids = jnp.where(inside, gc + offsets, b * rows).reshape(-1)
         return acc.at[ids].add(vc.reshape((-1,) + vc.shape[2:]).astype(jnp.float32), mode="drop")
 
-    sums = chunks.zeros_after((b * rows,) + values.shape[2:], jnp.float32, values)
-    chunk = chunks.row_chunks(n, b * math.prod(values.shape[2:]) * 4)
+    shape = (b * rows,) + values.shape[2:]
+    sums = chunks.zeros_after(shape, jnp.float32, values) if into is None else into.reshape(shape)
+    # (a quarter of a token chunk: the float32 chunk sits next to the ring's two blocks
+    # of sums at the sharded forward's peak)
+    chunk = chunks.row_chunks(n, b * math.prod(values.shape[2:]) * 4, chunks.TOKEN_CHUNK_BYTES // 4)
     return chunks.fold_tokens(add, sums, (group, values), n, 1, chunk).reshape((b, rows) + values.shape[2:])
 
 
