@@ -17,7 +17,8 @@ layer to layer, found in XLA's buffer assignment:
 Loop outputs and accumulators start from `zeros_after(shape, dtype, dep)`, zeros made
 from a value the loop needs anyway: XLA shares a constant zero buffer between loops and
 schedules it (and one copy per loop) at the start of the program, all alive at once.
-16-bit buffers a loop slices are held as bits (`Bits16`).
+16-bit buffers a loop slices are held as bits (`Bits16`), and no loop reads back what it
+wrote into a new 16-bit array (XLA:CPU would copy the whole array in every step).
 """
 
 from __future__ import annotations
