@@ -220,8 +220,8 @@ def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, 
     array updated in place (`in_place`, `update_tokens`) keeps them (masked), since they
     are already updated. Reading the written rows back is what an update in place must
     do, and what a new array must not: for a 16-bit array, XLA:CPU turns that read into a
-    float32 round trip of the whole buffer and a copy of it in every step (4 x 1.5 GB per
-    merging layer at 1000 frames of VGGT-1B in bfloat16).
+    float32 round trip of the whole buffer and a copy of it in every step (arrays of
+    0.5-1.6 GB at 1000 frames of VGGT-1B in bfloat16).
 
     fn(chunk of reader(acc) or None, *input_chunks) -> the chunk's new values (a pytree
     like acc)."""
