@@ -44,8 +44,7 @@ class KeptLayer:
 
     def _read(self, op, *index) -> jax.Array:
         """op applied to both halves, concatenated along channels, float32."""
-        halves = [buf.read(op, *index) if isinstance(buf, chunks.Bits16) else op(buf, *index)
-                  for buf in (self.frame_buf, self.global_buf)]
+        halves = [chunks.read_buffer(buf, op, *index) for buf in (self.frame_buf, self.global_buf)]
         # (the barrier keeps the float32 cast on the slices)
         return jnp.concatenate(jax.lax.optimization_barrier(halves), axis=-1).astype(jnp.float32)
 

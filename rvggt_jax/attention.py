@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.chunks import Bits16, is_16bit_float, dynamic_index, zeros_after
+from rvggt_jax.chunks import Bits16, dynamic_index, is_16bit_float, read_buffer, zeros_after
 
 if TYPE_CHECKING:
     from rvggt_jax.frames import FrameShards
@@ -115,9 +115,7 @@ def _blocked(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
     qb, kt, vt = (Bits16.of(t) if is_16bit_float(t) else t for t in (qb, kt, vt))
 
     def index(t, i):
-        if isinstance(t, Bits16):  # (a plain slice: `read` applies it to bits and to tangents)
-            return t.read(lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)
-        return dynamic_index(t, i)
+        return read_buffer(t, lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)
 
     def body(i, acc):
         out, lse = acc

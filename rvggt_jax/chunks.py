@@ -10,7 +10,7 @@ residual stream in place. Short sequences take one chunk and no loop.
 What keeps the residual stream x (4 GB in float32 at that size) a single buffer from
 layer to layer, found in XLA's buffer assignment:
 - no loop leaves a shorter tail chunk to a second update outside it (`_sweep`: even
-  chunks, the last one overlapping and masked); that update made XLA copy x;
+  chunks, the last one overlapping the one before); that update made XLA copy x;
 - a loop that reads x and precedes an in-place pass over it owns x (`read_tokens`,
   `fold_owned`: x is written back chunk by chunk): a loop that only reads x passes it
   through, and XLA then copies x for the in-place pass.
@@ -125,6 +125,12 @@ class Bits16:
         return cls(*children)
 
 
+def read_buffer(buf: "jax.Array | Bits16", op, *index) -> jax.Array:
+    """op(buf, *index) for a plain array or a `Bits16` buffer; op a plain lax slicing op
+    (for `Bits16` it is applied to the bits and to the tangents)."""
+    return buf.read(op, *index) if isinstance(buf, Bits16) else op(buf, *index)
+
+
 @jax.custom_jvp
 def _store_bits(bits, shadow, x, index):
     return jax.lax.dynamic_update_index_in_dim(bits, jax.lax.bitcast_convert_type(x, jnp.uint16), index, 0), shadow
@@ -235,14 +241,13 @@ def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, 
             return jax.tree.map(lambda t: dynamic_slice(t, start, rows, axis), tree)
 
         res = fn(None if reader is None else chunk_of(reader(a)), *chunk_of(inputs))
-        old = chunk_of(a) if overlap else None
         if overlap:  # the rows before i * rows are done (only in the last chunk)
             fresh = jax.lax.broadcasted_iota(jnp.int32, (rows,), 0) >= i * rows - start
 
             def keep(r, o):
                 return jnp.where(fresh.reshape((1,) * axis + (rows,) + (1,) * (r.ndim - axis - 1)), r, o)
 
-            res = jax.tree.map(keep, res, old)
+            res = jax.tree.map(keep, res, chunk_of(a))
         return jax.tree.map(lambda t, r: jax.lax.dynamic_update_slice_in_dim(t, r, start, axis), a, res)
 
     return jax.lax.fori_loop(0, count, body, acc)

@@ -194,9 +194,8 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         if not shards.sharded:
             # each sum made after the match, then after the previous mean; the loops own x
             # (see chunks.read_tokens)
-            xo, mean = merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
-                                           dep=match.group if after is None else after, owned=True)
-            return xo, mean
+            return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
+                                       dep=match.group if after is None else after, owned=True)
         # one of q, k, v at a time: each projected after the previous one is summed; the
         # projecting loop owns x (chunks.read_tokens)
         xs, (vals,) = chunks.read_tokens(fn, x, (pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
