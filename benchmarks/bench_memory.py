@@ -7,6 +7,11 @@
 
        python benchmarks/bench_memory.py plan --frames 100 300 1000
 
+   `--param-dtype float32` plans the compute dtype with float32 weights instead (what
+   upstream's autocast runs: the weights stay float32, only the matmuls run in bf16):
+
+       python benchmarks/bench_memory.py plan --frames 1000 --dtypes bfloat16 --param-dtype float32
+
 2. A real run on this CPU of a small layout (24 layers of width 64, one head of 64, DINO
    depth 1, small heads; random weights) on 168 x 224 images: wall time (median of the
    repeats, the presets interleaved) of the whole forward and of the aggregator alone (the
@@ -54,18 +59,21 @@ def random_params(config: VGGTConfig, seed: int = 0) -> dict:
 
 def plan(args) -> list[str]:
     cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
-    rows = ["| S | preset | dtype | total GB | arguments GB | outputs GB | temporaries GB | vs dense |",
-            "|---:|---|---|---:|---:|---:|---:|---:|"]
+    rows = ["| S | preset | dtype | weights | total GB | arguments GB | outputs GB | temporaries GB | vs dense |",
+            "|---:|---|---|---|---:|---:|---:|---:|---:|"]
     for s in args.frames:
         for dtype in args.dtypes:
             dense_total = None
+            param_dtype = dtype if args.param_dtype == "compute" else args.param_dtype
             for preset in args.presets:
-                rep = rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height, args.width, dtype=dtype)
+                rep = rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height, args.width, dtype=dtype,
+                                              param_dtype=param_dtype)
                 if preset == "dense":
                     dense_total = rep.total_bytes
                 ratio = f"{rep.total_bytes / dense_total:.2f}x" if dense_total else ""
-                row = (f"| {s} | {preset} | {dtype} | {rep.total_bytes / 1e9:.1f} | {rep.argument_bytes / 1e9:.1f} | "
-                       f"{rep.output_bytes / 1e9:.1f} | {rep.temp_bytes / 1e9:.1f} | {ratio} |")
+                row = (f"| {s} | {preset} | {dtype} | {rep.param_dtype} | {rep.total_bytes / 1e9:.1f} | "
+                       f"{rep.argument_bytes / 1e9:.1f} | {rep.output_bytes / 1e9:.1f} | {rep.temp_bytes / 1e9:.1f} | "
+                       f"{ratio} |")
                 print(row, flush=True)
                 rows.append(row)
                 gc.collect()
@@ -135,6 +143,9 @@ def main(argv=None) -> None:
     p.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"])
     p.add_argument("--height", type=int, default=392)
     p.add_argument("--width", type=int, default=518)
+    p.add_argument("--param-dtype", default="compute", choices=["compute", "float32", "bfloat16"],
+                   help="the aggregator's weight dtype: the compute dtype (as `load_pretrained(..., "
+                        "param_dtype=...)` and the CLI load them; default) or a fixed one")
     r = sub.add_parser("run", help="a real CPU run of the small layout")
     r.add_argument("--frames", type=int, nargs="+", default=[64, 128, 256])
     r.add_argument("--presets", nargs="+", default=["dense", "regime"])

@@ -188,11 +188,12 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
     s = shards.local  # frames here (geom.frames: in the sequence)
     b = n // s
     dtype = config.compute_dtype
-    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D]
+    # RoPE tables, built once for all blocks: [1, P, 1, D] and [1, S*P, 1, D] (periodic
+    # when long: `RopeTables.of_sequence`)
     frame_pos = layers.RopeTables.from_positions(
         jnp.asarray(layers.patch_positions(geom.h, geom.w, geom.num_special))[None], config.head_dim,
         config.rope_freq)
-    global_pos = jax.tree.map(lambda t: jnp.tile(t, (1, s, 1, 1)), frame_pos)
+    global_pos = layers.RopeTables.of_sequence(frame_pos, s)
     slot, spare = kept_slots(config.depth, keep)
     state = None
     if not config.compression.is_dense:

@@ -112,6 +112,33 @@ class RopeTables:
         angles = jnp.concatenate([angles[0], angles[0], angles[1], angles[1]], axis=-1)[:, :, None, :]
         return cls(jnp.cos(angles), jnp.sin(angles))
 
+    @classmethod
+    def of_sequence(cls, frame: "RopeTables", frames: int) -> "RopeTables":
+        """The tables of `frames` frames in a row from one frame's [1, P, 1, D]: tiled, or,
+        when the tiled tables would exceed a token chunk (`chunks.TOKEN_CHUNK_BYTES`), as
+        `chunks.Periodic` arrays (one frame's rows, sliced per chunk: no table of the
+        whole sequence)."""
+        n = frame.cos.shape[1] * frames
+        if n * frame.cos.shape[-1] * 4 <= chunks.TOKEN_CHUNK_BYTES:
+            return jax.tree.map(lambda t: jnp.tile(t, (1, frames, 1, 1)), frame)
+        return cls(chunks.Periodic(frame.cos, n), chunks.Periodic(frame.sin, n))
+
+    def first(self, rows: int) -> "RopeTables":
+        """The tables of the first `rows` tokens (`rows` within one period when periodic)."""
+        def head(t):
+            src = t.period if isinstance(t, chunks.Periodic) else t
+            if rows > src.shape[1]:
+                raise ValueError(f"the first {rows} rows of tables with a period of {src.shape[1]}")
+            return src[:, :rows]
+        return RopeTables(head(self.cos), head(self.sin))
+
+    def frame_rows(self, local: jax.Array) -> "RopeTables":
+        """Rows `local` (indices within a frame, any shape) of every table, [*local.shape, 1, D]."""
+        def rows(t):
+            src = t.period if isinstance(t, chunks.Periodic) else t
+            return jnp.take(src[0], local, axis=0, mode="clip")
+        return RopeTables(rows(self.cos), rows(self.sin))
+
     def __getitem__(self, idx) -> "RopeTables":
         return RopeTables(self.cos[idx], self.sin[idx])
 
@@ -266,6 +293,7 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
     if per_sequence <= chunks.TOKEN_CHUNK_BYTES:
         whole = dict(eps=eps, dtype=dtype, axis=0, bytes_per_row=per_sequence, multiple=1)
         attend = self_attention(p, num_heads, eps, dtype)
+        tables = tuple(map(chunks.whole, tables))
         if tables and tables[0].shape[0] != 1:  # per-sequence positions: chunk them too
             return run_block(p, x, attend, tables, **whole)
         return run_block(p, x, lambda xc: attend(xc, *tables), **whole)

@@ -79,6 +79,28 @@ def main() -> None:
             run["track_frame0"] = float(np.abs(np.asarray(out["track"])[:, 0] - np.asarray(queries)).max())
         report["runs"].append(run)
         tick(f"{devices} devices {preset}")
+    # the long-sequence routes on each device (as at 1000 frames): a token chunk of 2 KiB
+    # makes the device's RoPE tables periodic (chunks.Periodic) and every loop run in
+    # chunks; against the single-device forward of the default chunks
+    from rvggt_jax import chunks, layers
+
+    long_cfg = config.with_compression("regime")
+    long_images = jax.random.uniform(jax.random.PRNGKey(frames), (1, frames, 3, H, W))
+    ref = refs["regime", True]
+    saved = chunks.TOKEN_CHUNK_BYTES
+    chunks.TOKEN_CHUNK_BYTES = 2048
+    try:
+        per_frame = long_cfg.patch_start_idx + (H // 14) * (W // 14)
+        frame = layers.RopeTables.from_positions(jnp.zeros((1, per_frame, 2), jnp.int32), long_cfg.head_dim,
+                                                 long_cfg.rope_freq)
+        periodic = isinstance(layers.RopeTables.of_sequence(frame, frames // 4).cos, chunks.Periodic)
+        long = jax.jit(lambda p, x: sharded_forward(p, x, long_cfg, frames_mesh(4)))(params, long_images)
+    finally:
+        chunks.TOKEN_CHUNK_BYTES = saved
+    report["long_routes"] = {"periodic": periodic,
+                             "errors": {k: rel(long[k], ref[k]) for k in ("depth", "world_points", "pose_enc")}}
+    tick("long-sequence routes")
+
     # one compilation per input shape: new values, same shapes
     before = sharded._cache_size()
     sharded(params, images + 0.25, cfg, mesh, qp, keep_padding=uneven)

@@ -94,3 +94,26 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     scanned, _, _ = jax.jit(lambda p, x: aggregator_forward(p, x, cfg, range(24)))(params["aggregator"], images)
     for i in range(cfg.depth):
         assert rel_err(scanned[i].array(), ref[i]) <= 1e-5, i
+
+
+@pytest.mark.parametrize("name", ["regime", "fastvggt"])
+def test_long_sequence_routes_equal_one_chunk(tiny, golden, monkeypatch, name):
+    # The tiny fixture runs every loop in one chunk. Under a token chunk of 16 KiB the
+    # long-sequence routes run instead: the global RoPE tables held as one frame's rows
+    # (chunks.Periodic, sliced per chunk), merged Q/K/V sums over token chunks in a loop
+    # that owns x, K/V-only layers and merged layers finishing their rows chunk by chunk,
+    # frame and DINO blocks as K/V + query chunks. Same outputs, to float32 rounding.
+    from rvggt_jax import chunks, layers
+
+    params, config = tiny
+    cfg = config.with_compression(name)
+    images = golden["images"]
+    ref = jax.tree.map(np.asarray, jax.jit(lambda p, x: rvggt_forward(p, x, cfg))(params, images))
+    monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 16 * 1024)
+    s, p = images.shape[1], 5 + (images.shape[3] // 14) * (images.shape[4] // 14)
+    frame = layers.RopeTables.from_positions(jnp.zeros((1, p, 2), jnp.int32), cfg.head_dim, cfg.rope_freq)
+    assert isinstance(layers.RopeTables.of_sequence(frame, s).cos, chunks.Periodic)
+    assert chunks.row_chunks(s * p, 2 * cfg.embed_dim * 4) < s * p  # the merged sums in chunks
+    out = jax.jit(lambda p, x: rvggt_forward(p, x, cfg))(params, images)  # a new function: traced anew
+    for key in OUTPUTS:
+        assert rel_err(out[key], ref[key]) <= 1e-5, key

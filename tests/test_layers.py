@@ -72,6 +72,55 @@ def test_token_chunks_equal_one_pass(rows):
     np.testing.assert_allclose(np.asarray(upd), np.asarray(fn(x, y)), rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.parametrize("rows", [8, 24, 100])
+def test_periodic_rows_are_the_tiled_rows(rows):
+    # One frame's rows held as a `chunks.Periodic` array (the RoPE tables of a long
+    # sequence) stand for the rows tiled over the sequence: in every chunk loop, in chunks
+    # that start inside a period and cross into the next (8, 24 rows over a period of 5),
+    # and whole (100 rows: one chunk).
+    rng = np.random.default_rng(5)
+    period = jnp.asarray(rng.standard_normal((1, 5, 1, 6)).astype(np.float32))
+    per, tiled = chunks.Periodic(period, 100), jnp.tile(period, (1, 20, 1, 1))
+    assert per.shape == tiled.shape == (1, 100, 1, 6) and per.dtype == tiled.dtype
+    np.testing.assert_array_equal(np.asarray(per.whole()), np.asarray(tiled))
+    for start in (0, 3, 7, 93):
+        got = jax.jit(lambda s: chunks.dynamic_slice(per, s, 7, 1))(jnp.int32(start))
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(tiled[:, start:start + 7]))
+    np.testing.assert_array_equal(np.asarray(chunks.slice_rows(per, 96, 100, 1)), np.asarray(tiled[:, 96:]))
+
+    x = jnp.asarray(rng.standard_normal((2, 100, 6)).astype(np.float32))
+
+    def fn(t, c):
+        return t * c[:, :, 0] + jnp.sin(t)
+
+    for run in (lambda c: chunks.map_tokens(fn, (x, c), rows=rows),
+                lambda c: chunks.update_tokens(fn, x, (c,), rows=rows),
+                lambda c: chunks.read_tokens(fn, x, (c,), rows=rows)[1],
+                lambda c: chunks.fold_tokens(lambda a, s, n, t, cc: a + fn(t, cc).sum(axis=1), jnp.zeros((2, 6)),
+                                             (x, c), 100, 1, rows)):
+        np.testing.assert_array_equal(np.asarray(jax.jit(run)(per)), np.asarray(jax.jit(run)(tiled)))
+    with pytest.raises(ValueError, match="multiple of its period"):
+        chunks.Periodic(period, 102)
+
+
+def test_sequence_tables_are_periodic_only_when_long(monkeypatch):
+    frame = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(2, 3, 1))[None], 8, 100.0)
+    short = layers.RopeTables.of_sequence(frame, 4)
+    assert not isinstance(short.cos, chunks.Periodic) and short.cos.shape == (1, 28, 1, 8)
+    monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 28 * 8 * 4 - 1)
+    long = layers.RopeTables.of_sequence(frame, 4)
+    assert isinstance(long.cos, chunks.Periodic) and long.cos.shape == (1, 28, 1, 8)
+    for a, b in ((long.cos.whole(), short.cos), (long.sin.whole(), short.sin)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a frame's rows and the first rows, from the period
+    local = jnp.asarray([[0, 6], [3, 1]])
+    for t in (short, long):
+        np.testing.assert_array_equal(np.asarray(t.first(7).cos), np.asarray(frame.cos))
+        np.testing.assert_array_equal(np.asarray(t.frame_rows(local).sin), np.asarray(frame.sin[0][local]))
+    with pytest.raises(ValueError, match="period"):
+        long.first(8)
+
+
 def test_row_chunk_size():
     assert chunks.row_chunks(1000, 16, 160) == 8  # at least 8 rows
     assert chunks.row_chunks(1000, 4, 400) == 96  # a multiple of 8 under the budget

@@ -42,6 +42,15 @@ def test_sharded_equals_single_device(report, case):
     assert {"depth", "world_points", "pose_enc", "images"} <= set(run["errors"])
 
 
+def test_long_sequence_routes_on_each_device(report):
+    # per-device RoPE tables held as one frame's rows and every loop in chunks (what 1000
+    # frames run), against the single-device forward
+    run = report["long_routes"]
+    assert run["periodic"]
+    bad = {k: e for k, e in run["errors"].items() if not e <= TOL}
+    assert not bad, bad
+
+
 def test_one_compilation_per_shape(report):
     assert report["recompiled"] == 0, "a second call with the same shapes compiled again"
 

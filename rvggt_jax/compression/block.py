@@ -133,7 +133,8 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
     if plan.kind == LayerKind.DENSE:
         return dense_global_block(p_block, x, pos, config, shards, L), state
     if plan.kind == LayerKind.FRAME:
-        out = layers.block(p_block, x.reshape(b * shards.local, L, c), heads, pos[:, :L], freq, dtype=dtype)
+        frame_pos = pos.first(L) if isinstance(pos, layers.RopeTables) else pos[:, :L]
+        out = layers.block(p_block, x.reshape(b * shards.local, L, c), heads, frame_pos, freq, dtype=dtype)
         return out.reshape(b, n, c), state
 
     part = plan.partition
@@ -311,5 +312,5 @@ def _rows_kv(p_block, x: jax.Array, idx: jax.Array, pos: layers.RopeTables, head
     at their own positions; `pos` the tables of x's tokens, which repeat every frame)."""
     rows = shards.take_rows(x, idx, per_frame)
     local = idx % per_frame
-    tables = layers.RopeTables(*(jnp.take(t[0], local, axis=0, mode="clip") for t in (pos.cos, pos.sin)))
+    tables = pos.frame_rows(local)
     return layers.normed_qkv(p_block, rows, heads, tables, dtype=dtype, parts="kv")

@@ -269,7 +269,7 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
 
     group = match.group
     if rows >= n:
-        sums = add(sums, group, *inputs)
+        sums = add(sums, group, *map(chunks.whole, inputs))
     elif owned:
         x0, sums = chunks.fold_owned(lambda acc, xc, g, *c: add(acc, g, xc, *c), x0, sums, (group, *inputs[1:]),
                                      n, rows)
