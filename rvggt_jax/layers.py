@@ -97,7 +97,9 @@ class RopeTables:
     building the tables once and passing them as `pos` keeps the trigonometry out of the
     blocks (XLA fuses cos/sin into every consumer, recomputing them per head and block:
     ~15% of a global block on CPU). Indexing slices both tables alike
-    (`tables[:, :L]` = the first L tokens)."""
+    (`tables[:, :L]` = the first L tokens). The whole sequence's tables
+    (`of_sequence`) may be `chunks.Periodic` (one frame's rows): the chunk loops slice
+    them; `first` and `frame_rows` read them either way."""
 
     def __init__(self, cos: jax.Array, sin: jax.Array):
         self.cos, self.sin = cos, sin
