@@ -100,3 +100,28 @@ def test_16bit_chunk_outputs_are_written_in_place(fn):
     result_bytes = n * c * 2
     assert compiled.memory_analysis().output_size_in_bytes >= result_bytes
     assert compiled.memory_analysis().temp_size_in_bytes < result_bytes / 4
+
+
+def test_long_sequence_rope_tables_are_never_formed_whole(monkeypatch):
+    # When a sequence's RoPE tables would exceed a token chunk (2 x 266 MB at 1000 frames
+    # of VGGT-1B), they are held as one frame's rows (chunks.Periodic) and each chunk loop
+    # takes its rows: no array of the compiled forward has a row per token of the sequence
+    # and the head dimension [1, S*P, 1, D] (checked on a 41-frame plan with a 1 MiB chunk;
+    # a 40-frame plan with the default chunk, where the tiled tables fit, has them).
+    # (Other frame counts than the suite's other plans: a cached trace would not see the
+    # patched chunk size.)
+    import re
+
+    from rvggt_jax import chunks
+
+    cfg = BASE.with_compression("regime")
+
+    def tables_in_plan(frames):
+        n = frames * (cfg.patch_start_idx + (H // 14) * (W // 14))
+        text = rvggt_jax.memory_report(cfg, frames, H, W).compiled.as_text()
+        return n, re.search(rf"f32\[1,{n},1,{cfg.head_dim}\]", text) is not None
+
+    assert tables_in_plan(40)[1]
+    monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2**20)
+    n, found = tables_in_plan(41)
+    assert n * cfg.head_dim * 4 > chunks.TOKEN_CHUNK_BYTES and not found
