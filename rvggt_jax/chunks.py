@@ -127,7 +127,10 @@ class Periodic:
 
     @classmethod
     def tree_unflatten(cls, n, children):
-        return cls(children[0], n)
+        # (no check: JAX unflattens with placeholder leaves too)
+        obj = object.__new__(cls)
+        obj.period, obj.n = children[0], n
+        return obj
 
 
 def whole(x):

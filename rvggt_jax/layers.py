@@ -130,7 +130,7 @@ class RopeTables:
         def head(t):
             src = t.period if isinstance(t, chunks.Periodic) else t
             if rows > src.shape[1]:
-                raise ValueError(f"the first {rows} rows of tables with a period of {src.shape[1]}")
+                raise ValueError(f"{rows} rows asked of RoPE tables holding {src.shape[1]}")
             return src[:, :rows]
         return RopeTables(head(self.cos), head(self.sin))
 
