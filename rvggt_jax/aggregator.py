@@ -25,14 +25,21 @@ from rvggt_jax.patch_embed import patch_embed_tokens
 @jax.tree_util.register_pytree_node_class
 class KeptLayer:
     """The tokens of one kept aggregator layer, [B, S, P, 2C] float32 on demand, without a
-    copy: its frame-block and global-block halves stay in the aggregator's stacked
-    [K + 1, B, S, P, C] buffers (compute dtype; 16-bit ones as `chunks.Bits16`) and are
-    sliced and concatenated per group of frames where a head reads them (`frames`). At
-    1000 frames of VGGT-1B every full copy of the four kept layers costs 17 GB in
-    bfloat16."""
+    copy: its frame-block and global-block halves stay where the aggregator left them and
+    are sliced and concatenated per group of frames where a head reads them (`frames`).
+    At 1000 frames of VGGT-1B every full copy of the four kept layers costs 17 GB in
+    bfloat16.
 
-    def __init__(self, frame_buf, global_buf, slot: int):
+    Each half is a slot of a stacked [K, B, S, P, C] buffer (compute dtype; 16-bit ones as
+    `chunks.Bits16`): the frame half in slot `slot`, the global half in `global_slot`
+    (default the same). The last layer's global half is the aggregator's final residual
+    stream itself ([1, B, S, P, C] float32, slot 0), read rounded to `dtype` (the compute
+    dtype), the values its slot would have held."""
+
+    def __init__(self, frame_buf, global_buf, slot: int, global_slot: int | None = None, dtype=None):
         self.frame_buf, self.global_buf, self.slot = frame_buf, global_buf, slot
+        self.global_slot = slot if global_slot is None else global_slot
+        self.dtype = None if dtype is None else jnp.dtype(dtype)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -43,16 +50,17 @@ class KeptLayer:
         return 4
 
     def _read(self, op, *index) -> jax.Array:
-        """op applied to both halves, concatenated along channels, float32."""
-        halves = [chunks.read_buffer(buf, op, *index) for buf in (self.frame_buf, self.global_buf)]
+        """op(buffer, slot, *index) on both halves, concatenated along channels, float32."""
+        halves = [chunks.read_buffer(self.frame_buf, lambda b, *i: op(b, self.slot, *i), *index),
+                  chunks.read_buffer(self.global_buf, lambda b, *i: op(b, self.global_slot, *i), *index)]
+        if self.dtype is not None:  # (the residual stream, as its slot would hold it)
+            halves[1] = halves[1].astype(self.dtype)
         # (the barrier keeps the float32 cast on the slices)
         return jnp.concatenate(jax.lax.optimization_barrier(halves), axis=-1).astype(jnp.float32)
 
     def frames(self, start: jax.Array | int, count: int) -> jax.Array:
         """Frames [start, start + count) of the flattened B*S frames: [count, P, 2C] float32."""
-        slot = self.slot
-
-        def part(buf, start):
+        def part(buf, slot, start):
             # (buf: float32, or a 16-bit buffer's bits; plain slices, which also carry
             # the derivatives of `chunks.Bits16`)
             flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])  # [K, B*S, P, C]
@@ -66,18 +74,18 @@ class KeptLayer:
 
     def token(self, index: int) -> jax.Array:
         """One token of every frame: [B, S, 2C] float32 (index 0: the camera token)."""
-        return self._read(lambda buf: buf[self.slot, :, :, index])
+        return self._read(lambda buf, slot: buf[slot, :, :, index])
 
     def array(self) -> jax.Array:
         """The whole layer [B, S, P, 2C] float32 (a copy)."""
-        return self._read(lambda buf: buf[self.slot])
+        return self._read(lambda buf, slot: buf[slot])
 
     def tree_flatten(self):
-        return (self.frame_buf, self.global_buf), self.slot
+        return (self.frame_buf, self.global_buf), (self.slot, self.global_slot, self.dtype)
 
     @classmethod
-    def tree_unflatten(cls, slot, children):
-        return cls(*children, slot)
+    def tree_unflatten(cls, aux, children):
+        return cls(*children, *aux)
 
 
 def special_tokens(token: jax.Array, b: int, frame_ids: jax.Array) -> jax.Array:
@@ -209,14 +217,23 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
     # both would make XLA copy it inside the layer loop.
     shape = (len(keep) + spare, b, s, num_tokens, c)
     kept_frame = _kept_buffer(shape, dtype, saliency)
-    kept_global = _kept_buffer(shape, dtype, jax.tree.leaves(kept_frame)[0])
-    for group in layer_groups(config, geom):
+    # The last layer's global half, when kept, is the final residual stream itself: no
+    # slot for it, and the layers after the last-but-one kept layer write no global half
+    # (a slot nobody reads until the last layer fills it: 2.1 GB at 1000 frames of
+    # VGGT-1B in bfloat16, alive through every layer, where the aggregator peaks)
+    last_is_x = bool(keep) and keep[-1] == config.depth - 1
+    writes_global = (keep[-2] if len(keep) > 1 else -1) if last_is_x else config.depth - 1  # up to this layer
+    n_global = shape[0] - int(last_is_x)
+    kept_global = _kept_buffer((n_global,) + shape[1:], dtype, jax.tree.leaves(kept_frame)[0]) if n_global else None
+    groups = [g for run in layer_groups(config, geom)
+              for g in (tuple(i for i in run if i <= writes_global), tuple(i for i in run if i > writes_global)) if g]
+    for group in groups:
         # a group of layers that compute and store a band's match carries the last one out
         plan0 = compression.layer_plan(config.compression, group[0], geom)
         band = _storing(plan0) if state is not None else False
         key = plan0.match_key
 
-        def layer(carry, xs_i, group=group, band=band, key=key):
+        def layer(carry, xs_i, group=group, band=band, key=key, store=group[0] <= writes_global):
             x, kept_frame, kept_global, cached = carry
             i, k = xs_i
             p_frame = layers.select_block(p["frame_blocks"], group, i)
@@ -231,7 +248,8 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
                 x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
                 if band:
                     cached = after.matches[key]
-            kept_global = _write_slot(kept_global, x.reshape(b, s, num_tokens, c), k, dtype)
+            if store:
+                kept_global = _write_slot(kept_global, x.reshape(b, s, num_tokens, c), k, dtype)
             return (x, kept_frame, kept_global, cached), None
 
         if config.remat:  # keep only the layer's inputs for the backward pass (config.remat)
@@ -241,7 +259,10 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
         (x, kept_frame, kept_global, cached), _ = jax.lax.scan(layer, (x, kept_frame, kept_global, cached), xs)
         if band:
             state = state.with_match(key, cached)
-    return {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
+    out = {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
+    if last_is_x:
+        out[keep[-1]] = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), len(keep) - 1, 0, dtype)
+    return out
 
 
 def _kept_buffer(shape: tuple[int, ...], dtype, dep: jax.Array):

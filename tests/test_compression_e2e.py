@@ -96,7 +96,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
         assert rel_err(scanned[i].array(), ref[i]) <= 1e-5, i
 
 
-@pytest.mark.parametrize("name", ["regime", "fastvggt"])
+@pytest.mark.parametrize("name", ["regime", "avggt"])  # merged layers; frame and K/V-only layers
 def test_long_sequence_routes_equal_one_chunk(tiny, golden, monkeypatch, name):
     # The tiny fixture runs every loop in one chunk. Under a token chunk of 16 KiB the
     # long-sequence routes run instead: the global RoPE tables held as one frame's rows

@@ -129,6 +129,14 @@ def test_keeps_only_the_layers_the_heads_read(tiny, golden):
         params["aggregator"], golden["images"])
     assert sorted(outs) == [4, 23]
     assert rel_err(outs[4].array(), golden["aggregated_04"]) <= TOL
+    assert rel_err(outs[23].array(), golden["aggregated_23"]) <= TOL  # (its global half: the final stream)
+    # in bfloat16 the last layer's global half, read from the float32 residual stream, is
+    # rounded as a stored slot would be
+    bf16 = config.with_dtype("bfloat16")
+    outs, _, _ = jax.jit(lambda p, x: aggregator_forward(p, x, bf16, (4, 23)))(params["aggregator"], golden["images"])
+    last = np.asarray(outs[23].array())
+    np.testing.assert_array_equal(np.asarray(jax.numpy.asarray(last, jax.numpy.bfloat16), np.float32), last)
+    assert rel_err(last, golden["aggregated_23"]) <= 2e-2
 
 
 @pytest.mark.parametrize(
