@@ -191,7 +191,9 @@ def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression
     The kept layers' frame and global halves go to two [K, B, S, P, C] buffers in the
     compute dtype (what the heads read), every layer writing its outputs to a slot
     (`kept_slots`), so the body is the same unconditional in-place write for every
-    layer."""
+    layer. Except: a kept last layer's global half is the final residual stream (its
+    `KeptLayer` reads x), so the global buffer has one slot less and the layers after the
+    last-but-one kept layer, a scan of their own, write no global half."""
     n, num_tokens, c = tokens.shape
     s = shards.local  # frames here (geom.frames: in the sequence)
     b = n // s
