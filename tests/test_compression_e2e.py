@@ -1,6 +1,7 @@
 """Compression through the whole model on the tiny upstream checkpoint
 (tests/data/vggt_tiny): rho = 0 and sigma = 1 equals dense; every preset compiles once
-per input shape and returns finite outputs."""
+per input shape and returns finite outputs; the long-sequence routes (periodic RoPE
+tables, every loop in chunks) equal one chunk."""
 
 import jax
 import jax.numpy as jnp
