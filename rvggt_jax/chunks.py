@@ -338,10 +338,19 @@ def fold_owned(step, x: jax.Array, acc, inputs: tuple, n: int, rows: int):
     return x, acc
 
 
+def after(x: jax.Array, dep) -> jax.Array:
+    """x, unchanged, made to wait for `dep` (any pytree): x + a zero made from each of its
+    leaves (exact; the add fuses into x's consumers). XLA orders ops by data dependency
+    only (`lax.optimization_barrier` does not order them on CPU)."""
+    for leaf in jax.tree.leaves(dep):
+        x = x + zeros_after((), x.dtype, leaf)
+    return x
+
+
 def _written_back(xc: jax.Array, made_from) -> jax.Array:
     """x's chunk, unchanged, to write back into the x a loop owns: made from the loop's
-    results (+ 0), so that XLA cannot drop the write as a no-op."""
-    return xc + sum(zeros_after((), xc.dtype, o) for o in jax.tree.leaves(made_from))
+    results (`after`), so that XLA cannot drop the write as a no-op."""
+    return after(xc, made_from)
 
 
 def _zero_outputs(fn, chunk_inputs: list, n: int, axis: int, dep: jax.Array):

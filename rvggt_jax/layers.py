@@ -96,10 +96,9 @@ class RopeTables:
     A forward pass has two position sets (one frame, all frames) shared by its 48 blocks:
     building the tables once and passing them as `pos` keeps the trigonometry out of the
     blocks (XLA fuses cos/sin into every consumer, recomputing them per head and block:
-    ~15% of a global block on CPU). Indexing slices both tables alike
-    (`tables[:, :L]` = the first L tokens). The whole sequence's tables
-    (`of_sequence`) may be `chunks.Periodic` (one frame's rows): the chunk loops slice
-    them; `first` and `frame_rows` read them either way."""
+    ~15% of a global block on CPU). The whole sequence's tables (`of_sequence`) may be
+    `chunks.Periodic` (one frame's rows): the chunk loops slice them; `first` and
+    `frame_rows` read them either way."""
 
     def __init__(self, cos: jax.Array, sin: jax.Array):
         self.cos, self.sin = cos, sin
@@ -125,24 +124,22 @@ class RopeTables:
             return jax.tree.map(lambda t: jnp.tile(t, (1, frames, 1, 1)), frame)
         return cls(chunks.Periodic(frame.cos, n), chunks.Periodic(frame.sin, n))
 
+    def _leading(self, fn) -> "RopeTables":
+        """fn applied to both tables' leading rows: one period of a periodic table, all of
+        a plain one."""
+        return RopeTables(*(fn(t.period if isinstance(t, chunks.Periodic) else t) for t in (self.cos, self.sin)))
+
     def first(self, rows: int) -> "RopeTables":
         """The tables of the first `rows` tokens (`rows` within one period when periodic)."""
         def head(t):
-            src = t.period if isinstance(t, chunks.Periodic) else t
-            if rows > src.shape[1]:
-                raise ValueError(f"{rows} rows asked of RoPE tables holding {src.shape[1]}")
-            return src[:, :rows]
-        return RopeTables(head(self.cos), head(self.sin))
+            if rows > t.shape[1]:
+                raise ValueError(f"{rows} rows asked of RoPE tables holding {t.shape[1]}")
+            return t[:, :rows]
+        return self._leading(head)
 
     def frame_rows(self, local: jax.Array) -> "RopeTables":
         """Rows `local` (indices within a frame, any shape) of every table, [*local.shape, 1, D]."""
-        def rows(t):
-            src = t.period if isinstance(t, chunks.Periodic) else t
-            return jnp.take(src[0], local, axis=0, mode="clip")
-        return RopeTables(rows(self.cos), rows(self.sin))
-
-    def __getitem__(self, idx) -> "RopeTables":
-        return RopeTables(self.cos[idx], self.sin[idx])
+        return self._leading(lambda t: jnp.take(t[0], local, axis=0, mode="clip"))
 
     def tree_flatten(self):
         return (self.cos, self.sin), None

@@ -266,7 +266,10 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         # column exact)
         extra = () if dup is None else ((dup[0], dup[1], bias(dup[2], dup[3], plan.masked)),)
         log_g = bias(g, valid, True)
-        out = ring_attention(*_after(vm, qm, kk), vv, log_g, shards, extra)
+        # Q and K wait for V's sums: else XLA transposes and blocks them early, and they sit
+        # through V's sums (0.27 GB per device at 1000 frames of VGGT-1B in bfloat16 over 8
+        # devices)
+        out = ring_attention(chunks.after(qm, vm), chunks.after(kk, vm), vv, log_g, shards, extra)
     else:
         log_g = bias(g, valid, plan.masked) if plan.size_column else None
         _check_shapes(plan, comp, qm.shape[1], kk, log_g)
@@ -284,14 +287,6 @@ def global_block(p_block, x: jax.Array, pos: jax.Array, layer: int, config, stat
         x = layers.run_block(p_block, x, lambda xc, rc: rc, (shards.ring_take(out, group),), dtype=dtype,
                              projected=True)
     return x, state
-
-
-def _after(dep: jax.Array, *xs: jax.Array) -> tuple[jax.Array, ...]:
-    """xs, made to wait for `dep` (x + 0 from dep; the add fuses into the consumers). Ring
-    attention's Q and K wait for V's sums: else XLA transposes and blocks them early, and
-    they sit through V's sums (0.27 GB per device at 1000 frames of VGGT-1B in bfloat16
-    over 8 devices)."""
-    return tuple(x + chunks.zeros_after((), x.dtype, dep) for x in xs)
 
 
 def _check_shapes(plan: LayerPlan, comp: CompressionConfig, queries: int, keys: jax.Array, log_g) -> None:
