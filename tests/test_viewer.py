@@ -101,6 +101,10 @@ def test_viewer_in_headless_chromium(tmp_path):
         server.stop()
     img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     canvas = img[:, :600]  # left of the control panel
-    magenta = (canvas[..., 0] > 180) & (canvas[..., 1] < 90) & (canvas[..., 2] > 180)
+    # magenta hue, at any lightness: software WebGL blends the small points with the white
+    # background by a varying amount between runs (green from ~10 to ~180 in the same
+    # scene); nothing else on the canvas has R and B far above G
+    r, g, b = canvas[..., 0], canvas[..., 1], canvas[..., 2]
+    magenta = (r > 180) & (b > 180) & (g < np.minimum(r, b) - 50)
     assert magenta.sum() > 2000, f"the 3D canvas shows no points ({magenta.sum()} magenta pixels)"
     assert canvas.std() > 10  # not a blank page
