@@ -140,7 +140,8 @@ def bias_columns(key_bias: jax.Array, dtype: Any) -> jax.Array:
     """A float32 key bias [B, Nk] as K columns [B, Nk, c] in `dtype`: one column in
     float32; in a 16-bit dtype a pair (hi, lo) whose sum is the bias to ~2^-16 relative.
     One bfloat16 column keeps 8 significant bits: the folded log g / scale of a group of
-    100 (~37 at D = 64) would move by up to 0.07, its weight by ~1%."""
+    100 (~37 at D = 64) would be rounded by up to 0.125, 0.016 in the logit, up to 1.6%
+    of the group's weight."""
     dtype = jnp.dtype(dtype)
     if not (dtype.itemsize == 2 and jnp.issubdtype(dtype, jnp.floating)):
         return key_bias.astype(dtype)[..., None]
