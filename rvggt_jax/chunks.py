@@ -138,11 +138,6 @@ def whole(x):
     return x.whole() if isinstance(x, Periodic) else x
 
 
-def _chunk_tree(tree, start, size: int, axis: int):
-    return jax.tree.map(lambda t: dynamic_slice(t, start, size, axis), tree,
-                        is_leaf=lambda t: isinstance(t, Periodic))
-
-
 @jax.tree_util.register_pytree_node_class
 class Bits16:
     """A 16-bit float buffer held as its uint16 bits, for buffers a loop slices.
@@ -304,7 +299,9 @@ def _sweep(fn, acc, inputs: tuple, n: int, axis: int, rows: int, multiple: int, 
         start = jnp.minimum(i * rows, n - rows)
 
         def chunk_of(tree):
-            return _chunk_tree(tree, start, rows, axis)
+            # (a Periodic input is sliced as one array, not as the pytree it also is)
+            return jax.tree.map(lambda t: dynamic_slice(t, start, rows, axis), tree,
+                                is_leaf=lambda t: isinstance(t, Periodic))
 
         res = fn(None if reader is None else chunk_of(reader(a)), *chunk_of(inputs))
         if overlap:  # the rows before i * rows are done (only in the last chunk)
