@@ -52,7 +52,7 @@ WHATS = ("convert", "cli", "restore", "load_st")
 
 def _layout(scale: str):
     """(config, {key: shape}) for the chosen scale."""
-    from rvggt_jax.convert.shapes import upstream_state_dict_shapes
+    from rvggt_jax.weights.shapes import upstream_state_dict_shapes
     from rvggt_jax.config import VGGTConfig
 
     if scale == "1b":
@@ -125,7 +125,7 @@ class _Sampler(threading.Thread):
 
 
 def _child(args) -> None:
-    from rvggt_jax.convert.convert import load_safetensors
+    from rvggt_jax.weights.converter import load_safetensors
     from rvggt_jax.config import VGGTConfig
 
     import jax  # imported up front: its own footprint is the baseline
@@ -140,7 +140,7 @@ def _child(args) -> None:
     t0 = time.perf_counter()
     params, t1 = None, None
     if args.what == "cli":  # exactly what `python -m rvggt_jax.convert SRC DST` does
-        from rvggt_jax.convert.cli import main as cli_main
+        from rvggt_jax.app.convert_command import main as cli_main
 
         timings = {}
         assert cli_main([str(args.src), str(args.dst), "--config", str(args.config), "--quiet"], timings=timings) == 0
@@ -148,11 +148,11 @@ def _child(args) -> None:
     elif args.what == "convert":
         params = load_safetensors(args.src, config)
     elif args.what == "load_st":  # load_pretrained(upstream file): convert + device_put leaf by leaf
-        from rvggt_jax.checkpoint import load_pretrained
+        from rvggt_jax.weights.checkpoint import load_pretrained
 
         params, _ = load_pretrained(args.src)
     else:  # restore: load_pretrained(Orbax folder written by the CLI)
-        from rvggt_jax.checkpoint import load_pretrained
+        from rvggt_jax.weights.checkpoint import load_pretrained
 
         params, _ = load_pretrained(args.dst)
     jax.block_until_ready(params)

@@ -41,7 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import rvggt_jax  # noqa: E402
-from rvggt_jax.aggregator import aggregator_forward  # noqa: E402
+from rvggt_jax.model.aggregator import aggregator_forward  # noqa: E402
 from rvggt_jax.config import CameraHeadConfig, DinoConfig, DPTHeadConfig, VGGTConfig  # noqa: E402
 
 

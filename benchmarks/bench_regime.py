@@ -3,7 +3,7 @@
 Random weights; the aggregator trunk of VGGT (24 frame blocks + 24 global blocks, the
 part compression changes) with head dimension 64 (embed 256, 4 heads by default),
 images of 168 x 224 (a 12 x 16 patch grid), S frames. The trunk runs exactly as
-`rvggt_jax.aggregator.aggregator_forward` runs it after the patch embed (frame block,
+`rvggt_jax.model.aggregator.aggregator_forward` runs it after the patch embed (frame block,
 then `compression.global_block` or the dense block), keeping the layers the heads read;
 the tokens and the saliency Psi are random inputs. The DINO patch embed and the heads
 are not included: they are the same for every preset (the cost model reports the
@@ -39,10 +39,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rvggt_jax import compression, layers  # noqa: E402
+from rvggt_jax import compression  # noqa: E402
+
+from rvggt_jax.model import layers
 from rvggt_jax.compression import PRESETS  # noqa: E402
 from rvggt_jax.config import DinoConfig, VGGTConfig  # noqa: E402
-from rvggt_jax.cost import cost_report  # noqa: E402
+from rvggt_jax.planning.cost import cost_report  # noqa: E402
 
 KEEP = (4, 11, 17, 23)
 

@@ -51,8 +51,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rvggt_jax import VGGTConfig  # noqa: E402
 from rvggt_jax.compression import Geometry, layer_plan  # noqa: E402
-from rvggt_jax.memory import memory_report  # noqa: E402
-from rvggt_jax.sharded import frames_mesh  # noqa: E402
+from rvggt_jax.planning.memory import memory_report  # noqa: E402
+from rvggt_jax.parallel.sharded import frames_mesh  # noqa: E402
 
 GB = 1e9
 
@@ -138,7 +138,7 @@ def run(frames: int, devices: int, repeats: int, out: str | None) -> None:
     from benchmarks.bench_memory import random_params, small_layout
 
     import rvggt_jax
-    from rvggt_jax.sharded import sharded_forward
+    from rvggt_jax.parallel.sharded import sharded_forward
 
     cfg = small_layout()
     params = random_params(cfg)

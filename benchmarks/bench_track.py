@@ -33,10 +33,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rvggt_jax.aggregator import aggregator_forward  # noqa: E402
+from rvggt_jax.model.aggregator import aggregator_forward  # noqa: E402
 import rvggt_jax  # noqa: E402
 from rvggt_jax.config import DinoConfig, DPTHeadConfig, TrackHeadConfig, VGGTConfig  # noqa: E402
-from rvggt_jax.heads.track import track_head  # noqa: E402
+from rvggt_jax.model.heads.track import track_head  # noqa: E402
 
 
 def bench_config(args) -> VGGTConfig:

@@ -34,7 +34,7 @@ import rvggt_jax  # noqa: E402
 from benchmarks.bench_memory import small_layout  # noqa: E402
 from rvggt_jax import train  # noqa: E402
 from rvggt_jax.config import VGGTConfig  # noqa: E402
-from rvggt_jax.memory import abstract_params  # noqa: E402
+from rvggt_jax.planning.memory import abstract_params  # noqa: E402
 
 GB = 1e9
 

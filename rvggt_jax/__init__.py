@@ -6,29 +6,30 @@
 
 import importlib
 
-from rvggt_jax import xla_cpu
+from rvggt_jax.ops import xla_cpu
 
 # Before anything can start a JAX backend: multi-threaded CPU convolutions (xla_cpu.py).
 xla_cpu.prefer_threaded_convolutions()
 
 from rvggt_jax.config import VGGTConfig  # noqa: E402
 
-# Public names resolved on first use, so importing a submodule (rvggt_jax.layers) stays
+# Public names resolved on first use, so importing a submodule (rvggt_jax.model.layers) stays
 # cheap and does not pull in every head.
 _LAZY = {
-    "rvggt_forward": "rvggt_jax.model",
-    "as_query_points": "rvggt_jax.model",
-    "InputError": "rvggt_jax.model",
-    "load_pretrained": "rvggt_jax.checkpoint",
+    "rvggt_forward": "rvggt_jax.model.forward",
+    "as_query_points": "rvggt_jax.model.forward",
+    "InputError": "rvggt_jax.model.forward",
+    "load_pretrained": "rvggt_jax.weights.checkpoint",
     "load_images": "rvggt_jax.io.images",
-    "cost_report": "rvggt_jax.cost",
-    "memory_report": "rvggt_jax.memory",
-    "init_params": "rvggt_jax.nn",
-    "sharded_forward": "rvggt_jax.sharded",
-    "frames_mesh": "rvggt_jax.sharded",
+    "cost_report": "rvggt_jax.planning.cost",
+    "memory_report": "rvggt_jax.planning.memory",
+    "init_params": "rvggt_jax.model.modules",
+    "sharded_forward": "rvggt_jax.parallel.sharded",
+    "frames_mesh": "rvggt_jax.parallel.sharded",
 }
-# Submodules reachable as attributes without an explicit import (rvggt_jax.nn.VGGT).
-_SUBMODULES = ("nn", "train")
+# Submodules reachable as attributes without an explicit import: `rvggt_jax.nn.VGGT` (the
+# Flax modules, `rvggt_jax.model.modules`, under the name they had before the layout).
+_SUBMODULES = {"nn": "rvggt_jax.model.modules", "train": "rvggt_jax.train"}
 
 __all__ = ["VGGTConfig", *_LAZY, *_SUBMODULES]
 __version__ = "0.1.0"
@@ -38,5 +39,5 @@ def __getattr__(name: str):
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
     if name in _SUBMODULES:
-        return importlib.import_module(f"rvggt_jax.{name}")
+        return importlib.import_module(_SUBMODULES[name])
     raise AttributeError(f"module 'rvggt_jax' has no attribute {name!r}")

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax import layers
+from rvggt_jax.model import layers
 from rvggt_jax.compression.merge import Match
 
 

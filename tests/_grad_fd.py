@@ -28,7 +28,7 @@ from _micro import micro_config  # noqa: E402
 
 import rvggt_jax  # noqa: E402
 from rvggt_jax.config import VGGTConfig  # noqa: E402
-from rvggt_jax.model import rvggt_forward  # noqa: E402
+from rvggt_jax.model.forward import rvggt_forward  # noqa: E402
 
 VGGTConfig.compute_dtype = property(lambda self: jnp.dtype(jnp.float64))
 

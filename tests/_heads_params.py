@@ -10,7 +10,7 @@ from typing import Any, Iterable
 import numpy as np
 from safetensors.numpy import load_file
 
-from rvggt_jax.convert.convert import load_safetensors
+from rvggt_jax.weights.converter import load_safetensors
 from rvggt_jax.config import VGGTConfig
 
 DATA = Path(__file__).parent / "data" / "vggt_tiny"

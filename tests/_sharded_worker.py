@@ -18,9 +18,9 @@ import numpy as np  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
 import rvggt_jax  # noqa: E402
-from rvggt_jax.frames import FrameShards  # noqa: E402
-from rvggt_jax.heads.tracker import track_predictor  # noqa: E402
-from rvggt_jax.sharded import frames_mesh, sharded_forward  # noqa: E402
+from rvggt_jax.ops.shards import FrameShards  # noqa: E402
+from rvggt_jax.model.heads.tracker import track_predictor  # noqa: E402
+from rvggt_jax.parallel.sharded import frames_mesh, sharded_forward  # noqa: E402
 
 TINY = Path(__file__).parent / "data" / "vggt_tiny"
 H, W = 42, 56  # 3 x 4 patches: every compression step has something to do
@@ -82,7 +82,8 @@ def main() -> None:
     # the long-sequence routes on each device (as at 1000 frames): a token chunk of 2 KiB
     # makes the device's RoPE tables periodic (chunks.Periodic) and every loop run in
     # chunks; against the single-device forward of the default chunks
-    from rvggt_jax import chunks, layers
+    from rvggt_jax.ops import chunks
+    from rvggt_jax.model import layers
 
     long_cfg = config.with_compression("regime")
     long_images = jax.random.uniform(jax.random.PRNGKey(frames), (1, frames, 3, H, W))
@@ -129,7 +130,7 @@ def main() -> None:
     # XLA's plan of the sharded program on abstract inputs (nothing runs): per device, the
     # working memory of test_memory.py's long sequence (200 frames, width 256) split 4
     # ways against one device's
-    from rvggt_jax.memory import memory_report
+    from rvggt_jax.planning.memory import memory_report
     from test_memory import BASE, H as MH, S as MS, W as MW
 
     cfg = BASE.with_compression("regime")

@@ -1,4 +1,4 @@
-"""The one attention op (rvggt_jax/attention.py): the blocked CPU kernel and the
+"""The one attention op (rvggt_jax/ops/attention.py): the blocked CPU kernel and the
 folded-bias `jax.nn.dot_product_attention` path against a float64 reference; key bias,
 removed keys, bfloat16, memory that does not grow with the keys beyond K and V."""
 
@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rvggt_jax import attention as attn
+from rvggt_jax.ops import attention as attn
 from test_layers import _reference
 
 

@@ -16,7 +16,7 @@ import pytest
 
 from conftest import rel_err
 from rvggt_jax import rvggt_forward
-from rvggt_jax.checkpoint import cast_params
+from rvggt_jax.weights.checkpoint import cast_params
 
 UPSTREAM_BF16 = {"aggregated": 1.1e-2, "pose_enc": 1.6e-2, "depth": 7.0e-3, "depth_conf": 7.9e-3,
                  "world_points": 1.9e-2, "world_points_conf": 5.9e-3}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.heads.camera import activate_pose, camera_head
+from rvggt_jax.model.heads.camera import activate_pose, camera_head
 from tests._heads_params import DATA, load_head_params, load_io
 from conftest import rel_err
 

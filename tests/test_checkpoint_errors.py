@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from rvggt_jax import cli
-from rvggt_jax.checkpoint import CheckpointFileError, ConfigInferredWarning, config_for_safetensors
+from rvggt_jax.app import cli
+from rvggt_jax.weights.checkpoint import CheckpointFileError, ConfigInferredWarning, config_for_safetensors
 from rvggt_jax.config import VGGTConfig
 
 TINY = Path(__file__).parent / "data" / "vggt_tiny"
@@ -40,8 +40,8 @@ def test_lone_safetensors_layout_inferred(tmp_path):
 
 
 def test_1b_shapes_need_no_config():
-    from rvggt_jax.convert.infer import infer_config
-    from rvggt_jax.convert.shapes import upstream_state_dict_shapes
+    from rvggt_jax.weights.infer import infer_config
+    from rvggt_jax.weights.shapes import upstream_state_dict_shapes
 
     config, assumed = infer_config(upstream_state_dict_shapes(VGGTConfig()))
     assert config == VGGTConfig() and assumed == []

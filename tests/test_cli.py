@@ -1,4 +1,4 @@
-"""The `rvggt` command line, run as a subprocess (`python -m rvggt_jax.cli`): the demo
+"""The `rvggt` command line, run as a subprocess (`python -m rvggt_jax.app.cli`): the demo
 end to end (every output parses, one camera per image) and the one-line errors."""
 
 import json
@@ -32,13 +32,13 @@ def _compile_cache(tmp_path_factory):
 
 
 def rvggt(*args, timeout=600):
-    """Run `python -m rvggt_jax.cli ARGS` (timeout in seconds) -> CompletedProcess."""
+    """Run `python -m rvggt_jax.app.cli ARGS` (timeout in seconds) -> CompletedProcess."""
     env = dict(os.environ)
     env["RVGGT_CACHE_DIR"] = _CACHE.get("dir", "off")
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env.pop("RVGGT_DEBUG", None)
     env.setdefault("JAX_PLATFORMS", "cpu")
-    return subprocess.run([sys.executable, "-m", "rvggt_jax.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=REPO)
 
 
@@ -193,7 +193,7 @@ def test_convert_then_load(converted):
 
 
 def test_select_frames():
-    from rvggt_jax.cli import select_frames
+    from rvggt_jax.app.cli import select_frames
 
     paths = [Path(f"{i:02d}.png") for i in range(10)]
     assert select_frames(paths, None) == paths and select_frames(paths, 20) == paths
@@ -209,7 +209,7 @@ def test_memory_check_refuses_with_what_to_change(monkeypatch):
     import dataclasses
 
     from rvggt_jax.config import VGGTConfig
-    from rvggt_jax.memory import MEMORY_LIMIT_ENV, InsufficientMemoryError, check_fits
+    from rvggt_jax.planning.memory import MEMORY_LIMIT_ENV, InsufficientMemoryError, check_fits
 
     cfg = dataclasses.replace(VGGTConfig(), enable_track=False)
     monkeypatch.setenv(MEMORY_LIMIT_ENV, "16")
@@ -224,8 +224,8 @@ def test_memory_check_refuses_with_what_to_change(monkeypatch):
 
 
 def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
-    from rvggt_jax.cli import main
-    from rvggt_jax.memory import MEMORY_LIMIT_ENV
+    from rvggt_jax.app.cli import main
+    from rvggt_jax.planning.memory import MEMORY_LIMIT_ENV
 
     monkeypatch.setenv(MEMORY_LIMIT_ENV, "0.001")  # 1 MB
     code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY),
@@ -236,7 +236,7 @@ def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
 
 
 def test_reconstruct_devices_must_exist(tmp_path, capsys):
-    from rvggt_jax.cli import main
+    from rvggt_jax.app.cli import main
 
     code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY), "--out", str(tmp_path / "out"),
                  "--quiet", "--devices", "64"])

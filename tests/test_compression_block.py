@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import rel_err
-from rvggt_jax import layers
+from rvggt_jax.model import layers
 from rvggt_jax.compression import PRESETS, Geometry, global_block, init_state, layer_plan
 from rvggt_jax.compression.partition import kv_static_keep, partition, stride_protected
 from tests._compression_reference import (
@@ -21,7 +21,7 @@ from tests._compression_reference import (
     reference_match,
 )
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.cost import cost_report
+from rvggt_jax.planning.cost import cost_report
 from rvggt_jax.compression.plan import padded_head_dim
 
 C, HEADS = 32, 2

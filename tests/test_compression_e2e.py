@@ -60,10 +60,11 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     # then the layers reusing it); the same layers one by one through `global_block`
     # (checked against the float64 reference of the method in test_compression_block.py)
     # must agree.
-    from rvggt_jax import compression, layers
-    from rvggt_jax.aggregator import aggregator_forward, layer_groups, special_tokens
+    from rvggt_jax import compression
+    from rvggt_jax.model import layers
+    from rvggt_jax.model.aggregator import aggregator_forward, layer_groups, special_tokens
     from rvggt_jax.compression import Geometry
-    from rvggt_jax.patch_embed import patch_embed
+    from rvggt_jax.model.patch_embed import patch_embed
 
     params, config = tiny
     cfg = config.with_compression("regime")
@@ -104,7 +105,8 @@ def test_long_sequence_routes_equal_one_chunk(tiny, golden, monkeypatch, name):
     # (chunks.Periodic, sliced per chunk), merged Q/K/V sums over token chunks in a loop
     # that owns x, K/V-only layers and merged layers finishing their rows chunk by chunk,
     # frame and DINO blocks as K/V + query chunks. Same outputs, to float32 rounding.
-    from rvggt_jax import chunks, layers
+    from rvggt_jax.ops import chunks
+    from rvggt_jax.model import layers
 
     params, config = tiny
     cfg = config.with_compression(name)

@@ -13,7 +13,7 @@ import pytest
 from safetensors import safe_open
 from safetensors.numpy import save_file
 
-from rvggt_jax.convert import (
+from rvggt_jax.weights import (
     RULES,
     CheckpointError,
     convert_state_dict,
@@ -25,8 +25,8 @@ from rvggt_jax.convert import (
     main,
     upstream_state_dict_shapes,
 )
-from rvggt_jax.convert.rules import apply_rule, converted_shapes, matching_rules
-from rvggt_jax.checkpoint import load_pretrained, save_orbax
+from rvggt_jax.weights.rules import apply_rule, converted_shapes, matching_rules
+from rvggt_jax.weights.checkpoint import load_pretrained, save_orbax
 from rvggt_jax.config import VGGTConfig
 
 DATA = Path(__file__).parent / "data"
@@ -280,7 +280,7 @@ def test_one_error_from_safetensors_file(tiny_raw, tiny_config, tmp_path):
     with pytest.raises(CheckpointError) as ei:
         load_safetensors(tmp_path / "model.safetensors", tiny_config)
     _assert_names_all(ei.value)
-    from rvggt_jax.checkpoint import ConfigInferredWarning
+    from rvggt_jax.weights.checkpoint import ConfigInferredWarning
 
     with pytest.raises(CheckpointError), pytest.warns(ConfigInferredWarning):  # no config.json: inferred
         load_pretrained(tmp_path)
@@ -379,7 +379,7 @@ def test_load_pretrained_safetensors_folder_and_file(tiny_params, tiny_config, t
     _assert_trees_equal(params, tiny_params)
     # without a config.json beside it, the layout is inferred from the shapes, with a
     # warning naming what the shapes do not fix (head counts)
-    from rvggt_jax.checkpoint import ConfigInferredWarning
+    from rvggt_jax.weights.checkpoint import ConfigInferredWarning
 
     lonely = tmp_path / "weights.safetensors"
     lonely.symlink_to(TINY_ST.absolute())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.heads import dpt
+from rvggt_jax.model.heads import dpt
 from tests._heads_params import DATA, load_head_params, load_io
 from conftest import rel_err
 

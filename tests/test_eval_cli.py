@@ -22,7 +22,7 @@ def rvggt(cache, *args, timeout=600):
     env = dict(os.environ, RVGGT_CACHE_DIR=cache, JAX_PLATFORMS="cpu")
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env.pop("RVGGT_DEBUG", None)
-    return subprocess.run([sys.executable, "-m", "rvggt_jax.cli", "eval", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", "eval", *map(str, args)], capture_output=True,
                           text=True, timeout=timeout, env=env, cwd=REPO)
 
 
@@ -80,7 +80,7 @@ def test_eval_against_dense(cache, tmp_path):
 
 def one_error(capsys, argv, *needles):
     """`rvggt eval ARGV` in this process fails with one `rvggt: error:` line naming `needles`."""
-    from rvggt_jax.cli import main
+    from rvggt_jax.app.cli import main
 
     code = main(["eval", *map(str, argv)])
     err = capsys.readouterr().err

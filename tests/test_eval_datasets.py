@@ -8,7 +8,7 @@ import pytest
 from rvggt_jax.eval.datasets import DatasetError, FORMATS, load_scenes, sample_indices
 from rvggt_jax.eval.datasets.files import w2c_to_c2w
 from rvggt_jax.eval.datasets.ply import read_ply_points
-from rvggt_jax.eval.frames import network_images
+from rvggt_jax.eval.network_inputs import network_images
 from rvggt_jax.eval.protocols import PROTOCOLS, against_reference
 from rvggt_jax.synthetic import make_scene, write_scene
 

@@ -1,7 +1,7 @@
 """Gradients through `rvggt_forward`: finite and non-zero for every parameter the loss
 reaches (dense and the compression presets: merging and K/V selection are index
 operations, gradients flow through the values), float64 finite differences, and the
-bfloat16 slices of `rvggt_jax.chunks` (bit views) pass gradients."""
+bfloat16 slices of `rvggt_jax.ops.chunks` (bit views) pass gradients."""
 
 from __future__ import annotations
 
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import rvggt_jax
-from rvggt_jax import chunks
+from rvggt_jax.ops import chunks
 from rvggt_jax.compression.config import PRESETS
-from rvggt_jax.model import rvggt_forward
+from rvggt_jax.model.forward import rvggt_forward
 from tests._micro import micro_config
 
 # dense and regime always; every other preset compiles one more gradient (~20 s each on

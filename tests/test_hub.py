@@ -47,7 +47,8 @@ def _leaves(tree, prefix=()):
 
 
 def test_repo_id_loads_from_hub_cache_and_converts_once(offline_hub, tmp_path, monkeypatch):
-    from rvggt_jax import hub, load_pretrained
+    from rvggt_jax.weights import hub
+    from rvggt_jax import load_pretrained
 
     populate_hub_cache(offline_hub, "test/tiny-vggt")
     params, config = load_pretrained("test/tiny-vggt", device_put=False)
@@ -70,7 +71,7 @@ def test_repo_id_loads_from_hub_cache_and_converts_once(offline_hub, tmp_path, m
 
 
 def test_offline_and_missing_says_what_is_missing(offline_hub):
-    from rvggt_jax.hub import HubError, resolve_checkpoint
+    from rvggt_jax.weights.hub import HubError, resolve_checkpoint
 
     with pytest.raises(HubError) as e:
         resolve_checkpoint("facebook/VGGT-1B")
@@ -80,8 +81,8 @@ def test_offline_and_missing_says_what_is_missing(offline_hub):
 
 
 def test_repo_without_config_json_infers_layout(offline_hub):
-    from rvggt_jax.hub import resolve_checkpoint
-    from rvggt_jax.checkpoint import load_pretrained
+    from rvggt_jax.weights.hub import resolve_checkpoint
+    from rvggt_jax.weights.checkpoint import load_pretrained
 
     populate_hub_cache(offline_hub, "test/no-config", files=("model.safetensors",))
     path = resolve_checkpoint("test/no-config")
@@ -90,7 +91,7 @@ def test_repo_without_config_json_infers_layout(offline_hub):
 
 
 def test_local_paths_win_over_repo_ids(tmp_path, monkeypatch):
-    from rvggt_jax.hub import is_repo_id
+    from rvggt_jax.weights.hub import is_repo_id
 
     assert is_repo_id("facebook/VGGT-1B") and is_repo_id("facebook/VGGT-1B-Commercial")
     monkeypatch.chdir(tmp_path)

@@ -1,6 +1,6 @@
 """The package's import graph: no module-level import cycle, and the converter importable
 from a fresh interpreter in either order with the loaders (the old top-level `convert`
-package and `rvggt_jax.checkpoint` imported each other)."""
+package and `rvggt_jax.weights.checkpoint` imported each other)."""
 
 from __future__ import annotations
 
@@ -92,8 +92,8 @@ def test_cycle_finder_finds_a_planted_cycle():
 
 def test_graph_sees_the_converter_imports():
     graph = _import_graph()
-    assert {"rvggt_jax.convert", "rvggt_jax.convert.errors"} <= graph["rvggt_jax.checkpoint"]
-    assert "rvggt_jax.convert.errors" in graph["rvggt_jax.convert.convert"]
+    assert "rvggt_jax.weights.errors" in graph["rvggt_jax.weights.checkpoint"]
+    assert "rvggt_jax.weights.errors" in graph["rvggt_jax.weights.converter"]
 
 
 def test_no_module_level_import_cycle():
@@ -101,11 +101,11 @@ def test_no_module_level_import_cycle():
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
-@pytest.mark.parametrize("first, second", [("rvggt_jax.convert", "rvggt_jax.checkpoint"),
-                                           ("rvggt_jax.checkpoint", "rvggt_jax.convert")])
+@pytest.mark.parametrize("first, second", [("rvggt_jax.convert", "rvggt_jax.weights.checkpoint"),
+                                           ("rvggt_jax.weights.checkpoint", "rvggt_jax.convert")])
 def test_converter_and_loader_import_in_either_order(first, second):
     code = (f"import {first}, {second}; "
-            "assert rvggt_jax.checkpoint.CheckpointError is rvggt_jax.convert.CheckpointError")
+            "assert rvggt_jax.weights.checkpoint.CheckpointError is rvggt_jax.convert.CheckpointError")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 

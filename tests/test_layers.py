@@ -10,7 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rvggt_jax import chunks, layers
+from rvggt_jax.ops import chunks
+
+from rvggt_jax.model import layers
 
 
 def _reference(q, k, v, bias=None):

@@ -11,7 +11,7 @@ import pytest
 
 import rvggt_jax
 from rvggt_jax.config import CameraHeadConfig, DinoConfig, DPTHeadConfig, VGGTConfig
-from rvggt_jax.model import InputError
+from rvggt_jax.model.forward import InputError
 
 BASE = VGGTConfig(embed_dim=256, num_heads=4, dino=DinoConfig(depth=1, num_heads=4),
                   camera_head=CameraHeadConfig(num_heads=4, trunk_depth=1),
@@ -99,7 +99,7 @@ def test_16bit_chunk_outputs_are_written_in_place(fn):
     import jax
     import jax.numpy as jnp
 
-    from rvggt_jax import chunks
+    from rvggt_jax.ops import chunks
 
     n, c, rows = 10_001, 256, 1_024  # 10 chunks of 1,008 rows: the last overlaps
     x = jax.ShapeDtypeStruct((1, n, c), jnp.float32)
@@ -127,7 +127,7 @@ def test_long_sequence_rope_tables_are_never_formed_whole(plans, monkeypatch):
     # (22 frames: a cached trace of the suite's frame count would not see the patch.)
     import re
 
-    from rvggt_jax import chunks
+    from rvggt_jax.ops import chunks
 
     cfg = BASE.with_compression("regime")
     per_frame = cfg.patch_start_idx + (H // 14) * (W // 14)

@@ -70,8 +70,8 @@ def test_cache_blocking_leaves_every_output_at_parity(tiny, golden, monkeypatch)
     # with a tail of 1; global blocks in query chunks of 184 rows over 279 tokens, after
     # K and V), and DPT groups of 2 frames over 3 (the last group overlaps the one before),
     # and hold the whole model to the same 1e-4.
-    from rvggt_jax import attention, chunks
-    from rvggt_jax.heads import dpt
+    from rvggt_jax.ops import attention, chunks
+    from rvggt_jax.model.heads import dpt
 
     monkeypatch.setattr(attention, "LOGITS_BLOCK_BYTES", 4096)
     monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2 * 93 * 4 * 128)
@@ -121,7 +121,7 @@ def test_one_compilation_per_input_shape(tiny, golden):
 
 
 def test_keeps_only_the_layers_the_heads_read(tiny, golden):
-    from rvggt_jax.aggregator import aggregator_forward
+    from rvggt_jax.model.aggregator import aggregator_forward
 
     params, config = tiny
     assert config.needed_layers(with_track=False) == (4, 11, 17, 23)

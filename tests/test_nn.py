@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 import rvggt_jax
-from rvggt_jax.convert.convert import expected_param_shapes
+from rvggt_jax.weights.converter import expected_param_shapes
 from rvggt_jax.config import DPTHeadConfig, TrackHeadConfig, VGGTConfig
-from rvggt_jax.init import BLOCK, InitSpec, draw
-from rvggt_jax.model import rvggt_forward
-from rvggt_jax.nn import VGGT, Aggregator
+from rvggt_jax.model.initializers import BLOCK, InitSpec, draw
+from rvggt_jax.model.forward import rvggt_forward
+from rvggt_jax.model.modules import VGGT, Aggregator
 from tests._micro import micro_config
 
 KEY = jax.random.PRNGKey(0)

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from rvggt_jax.outdir import MANIFEST_NAME, Manifest, OutputDirError, prepare_output
+from rvggt_jax.app.outdir import MANIFEST_NAME, Manifest, OutputDirError, prepare_output
 
 
 def _fake_run(out, names):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import DATA, rel_err
-from rvggt_jax.patch_embed import bicubic_aa_matrix, interpolate_pos_embed
+from rvggt_jax.model.patch_embed import bicubic_aa_matrix, interpolate_pos_embed
 
 
 @pytest.mark.parametrize("key", [k for k in np.load(DATA / "interp_bicubic_aa.npz").files if k != "grid"])

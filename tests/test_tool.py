@@ -52,14 +52,14 @@ def ckpt(tmp_path_factory):
     """The tiny checkpoint converted to Orbax, as a hub repo id resolves to: every run of
     the module then loads alike (committed device arrays) and shares one compilation."""
     from rvggt_jax import load_pretrained
-    from rvggt_jax.checkpoint import save_orbax
+    from rvggt_jax.weights.checkpoint import save_orbax
 
     params, config = load_pretrained(TINY, device_put=False)
     return save_orbax(params, config, tmp_path_factory.mktemp("ckpt") / "tiny")
 
 
 def reconstruct(*args, **kw):
-    from rvggt_jax.commands import reconstruct_folder as r
+    from rvggt_jax.app.commands import reconstruct_folder as r
 
     kw.setdefault("quiet", True)
     return r(*args, **kw)
@@ -128,7 +128,7 @@ def test_phone_photos_16bit_and_skip_bad(tmp_path, capsys, ckpt):
     shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], src / "c_plain.jpg")
     (src / "d_corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\ngarbage")
     # default: stop at the corrupt file, before any model work, naming it
-    from rvggt_jax.errors import CLIError
+    from rvggt_jax.app.messages import CLIError
 
     with pytest.raises(CLIError, match="d_corrupt.png.*--skip-bad"):
         reconstruct(src, ckpt, tmp_path / "o1")
@@ -150,7 +150,7 @@ def test_phone_photos_16bit_and_skip_bad(tmp_path, capsys, ckpt):
 
 
 def test_reused_out_dir_needs_overwrite_and_keeps_user_files(tmp_path, ckpt):
-    from rvggt_jax.errors import CLIError
+    from rvggt_jax.app.messages import CLIError
 
     src = tmp_path / "imgs"
     src.mkdir()
@@ -197,7 +197,7 @@ def rvggt(*args, env=None):
     e = dict(os.environ, RVGGT_CACHE_DIR="off", JAX_PLATFORMS="cpu", **(env or {}))
     e["PYTHONPATH"] = str(REPO) + os.pathsep + e.get("PYTHONPATH", "")
     e.pop("RVGGT_DEBUG", None)
-    return subprocess.run([sys.executable, "-m", "rvggt_jax.cli", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", *map(str, args)], capture_output=True,
                           text=True, timeout=300, env=e, cwd=REPO)
 
 

@@ -34,8 +34,8 @@ import numpy as np
 import pytest
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.heads import tracker as trk
-from rvggt_jax.heads.track import track_features, track_head
+from rvggt_jax.model.heads import tracker as trk
+from rvggt_jax.model.heads.track import track_features, track_head
 from tests._heads_params import DATA, load_track_params
 from conftest import rel_err
 

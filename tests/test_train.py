@@ -204,7 +204,7 @@ def test_folder_reader_gives_the_synthetic_example(tmp_path):
 
 
 def test_finetune_cli_errors_are_one_line(tmp_path, capsys):
-    from rvggt_jax.cli import main
+    from rvggt_jax.app.cli import main
 
     assert main(["finetune", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
     assert "no such data folder" in capsys.readouterr().err

@@ -50,7 +50,7 @@ def make_reconstruction(out):
 
 
 def test_viewer_scene_and_controls(tmp_path):
-    from rvggt_jax.viewer import ALL_FRAMES, start
+    from rvggt_jax.app.viewer import ALL_FRAMES, start
 
     names = make_reconstruction(tmp_path / "rec")
     server, viewer = start(tmp_path / "rec", port=_free_port())
@@ -71,8 +71,8 @@ def test_viewer_scene_and_controls(tmp_path):
 
 
 def test_view_errors(tmp_path):
-    from rvggt_jax.errors import CLIError
-    from rvggt_jax.viewer import serve
+    from rvggt_jax.app.messages import CLIError
+    from rvggt_jax.app.viewer import serve
 
     with pytest.raises(CLIError, match="not an rvggt reconstruction"):
         serve(tmp_path, port=_free_port())
@@ -80,7 +80,7 @@ def test_view_errors(tmp_path):
 
 @pytest.mark.skipif(_browser() is None, reason="no Chromium (Debian: apt-get install chromium); .ci/run installs it")
 def test_viewer_in_headless_chromium(tmp_path):
-    from rvggt_jax.viewer import start
+    from rvggt_jax.app.viewer import start
 
     make_reconstruction(tmp_path / "rec")
     port = _free_port()

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rvggt_jax import xla_cpu
+from rvggt_jax.ops import xla_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -22,7 +22,7 @@ x = jnp.zeros((2, 48, 64, 64)); k = jnp.zeros((3, 3, 64, 64))
 conv = jax.jit(lambda x: jax.lax.conv_general_dilated(x, k, (1, 1), "SAME",
                                                        dimension_numbers=("NHWC", "HWIO", "NHWC")))
 hlo = conv.lower(x).compile().as_text()
-print(rvggt_jax.xla_cpu.applied(), "ynn" in hlo.lower())
+print(rvggt_jax.ops.xla_cpu.applied(), "ynn" in hlo.lower())
 """
 
 

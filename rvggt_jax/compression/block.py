@@ -30,9 +30,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax import chunks, layers
-from rvggt_jax.attention import NEG_BIAS, attention, log_sizes, ring_attention
-from rvggt_jax.frames import FrameShards
+from rvggt_jax.ops import chunks
+
+from rvggt_jax.model import layers
+from rvggt_jax.ops.attention import NEG_BIAS, attention, log_sizes, ring_attention
+from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.compression import kv as kv_lib
 from rvggt_jax.compression import merge as merge_lib
 from rvggt_jax.compression.config import CompressionConfig, LayerKind

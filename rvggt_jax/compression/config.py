@@ -135,7 +135,7 @@ class CompressionConfig:
     Attention
       head_pad_multiple  for the cost model: the folded head dimension d+1 that a flash
                          kernel sees, rounded up to a multiple of this (8 for cuDNN;
-                         1: unpadded). The attention op (`rvggt_jax.attention`) pads as
+                         1: unpadded). The attention op (`rvggt_jax.ops.attention`) pads as
                          its kernel needs; on CPU the bias is added to the logits.
       match_chunk        src tokens per similarity chunk; 0 = one chunk.
     """

@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax import chunks
-from rvggt_jax.frames import FrameShards
+from rvggt_jax.ops import chunks
+from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.compression.plan import LayerPlan
 
 

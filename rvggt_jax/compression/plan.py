@@ -1,6 +1,6 @@
 """The static shape plan of one global layer: every size the compressed block uses,
 derived from (configuration, layer, frames, grid) alone. The block and the cost model
-(`rvggt_jax.cost`) both read it, so they cannot disagree.
+(`rvggt_jax.planning.cost`) both read it, so they cannot disagree.
 
 Query layout of a merging layer: [dst (N_dst, static order) ; unmerged src (U,
 data-dependent)], N_m = N_dst + U = N - r. K/V slots: the dst kept for static reasons

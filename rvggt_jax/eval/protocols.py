@@ -18,7 +18,7 @@ from rvggt_jax.eval.alignment import (apply_sim3, bbox_scale, icp_point_to_point
                                       voxel_downsample)
 from rvggt_jax.eval.camera import camera_auc
 from rvggt_jax.eval.datasets.files import w2c_to_c2w
-from rvggt_jax.eval.frames import gt_points_at_network
+from rvggt_jax.eval.network_inputs import gt_points_at_network
 from rvggt_jax.eval.points import chamfer_distance, depth_abs_rel, nearest_distances, point_cloud_metrics
 from rvggt_jax.eval.trajectory import trajectory_errors
 

@@ -22,7 +22,7 @@ from typing import Any, Callable
 import numpy as np
 
 from rvggt_jax.eval.datasets import load_scenes, sample_indices
-from rvggt_jax.eval.frames import network_images
+from rvggt_jax.eval.network_inputs import network_images
 from rvggt_jax.eval.protocols import PROTOCOLS, against_reference
 
 __all__ = ["EvalSettings", "Predictor", "evaluate"]

@@ -8,7 +8,7 @@
 - Writers: `ply` (points with confidence), `glb` (scene.glb), `colmap` (COLMAP text
   model), `cameras` (cameras.json), `depth` (16-bit depth PNGs), `plots` (trajectory,
   thumbnails, depth colours); `export.export_reconstruction` writes all of them for a
-  `rvggt_jax.pipeline.Reconstruction`.
+  `rvggt_jax.app.pipeline.Reconstruction`.
 """
 
 from rvggt_jax.io.cameras import write_cameras_json

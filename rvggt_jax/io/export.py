@@ -40,7 +40,7 @@ CAMERAS_CONVENTION = ("extrinsic: 3x4 world-to-camera, OpenCV axes (x right, y d
 
 def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | None = 100_000,
                           meta: Mapping[str, Any] | None = None, write_scene: bool = True) -> dict[str, Any]:
-    """Write every file of `recon` (a `rvggt_jax.pipeline.Reconstruction`) to `out_dir`
+    """Write every file of `recon` (a `rvggt_jax.app.pipeline.Reconstruction`) to `out_dir`
     (layout in the module docstring). points3D.txt holds a random subset of at most
     `max_colmap_points` points (None: all); `meta` goes into cameras.json; scene.glb only
     with `write_scene`. COLMAP names cannot hold spaces: they are written with '_'

@@ -28,7 +28,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from rvggt_jax.model import InputError
+from rvggt_jax.model.forward import InputError
 
 Example = dict[str, np.ndarray]
 

@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model import InputError
+from rvggt_jax.model.forward import InputError
 from rvggt_jax.train import data as data_mod
 from rvggt_jax.train.step import TrainConfig, init_state, latest_step, make_train_step, restore_state, save_state
 
@@ -103,7 +103,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
                 save_state(state, out, model_config=config, train_config=tc)
     save_state(state, out, model_config=config, train_config=tc)
 
-    from rvggt_jax.checkpoint import save_orbax
+    from rvggt_jax.weights.checkpoint import save_orbax
 
     model_dir = save_orbax(jax.device_get(state.params), config, out / "model", overwrite=True)
     log(f"fine-tuned weights: {model_dir} (rvggt reconstruct --weights {model_dir})")

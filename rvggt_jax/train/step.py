@@ -140,7 +140,7 @@ def _query_points(batch: dict) -> jax.Array | None:
 
 def loss_fn(params: Any, batch: dict, config: VGGTConfig, loss_cfg: LossConfig) -> tuple[jax.Array, dict]:
     """(objective, parts) of `rvggt_forward(params, batch["images"], config)` on a batch."""
-    from rvggt_jax.model import rvggt_forward
+    from rvggt_jax.model.forward import rvggt_forward
 
     out = rvggt_forward(params, batch["images"], config, _query_points(batch))
     return vggt_loss(out, batch, loss_cfg)
@@ -187,7 +187,7 @@ def save_state(state: TrainState, directory: str | Path, *, model_config: VGGTCo
     folder."""
     import orbax.checkpoint as ocp
 
-    from rvggt_jax.checkpoint import _quiet_absl
+    from rvggt_jax.weights.checkpoint import _quiet_absl
 
     directory = Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
@@ -229,7 +229,7 @@ def restore_state(directory: str | Path, like: TrainState, step: int | None = No
     `jax.eval_shape`)."""
     import orbax.checkpoint as ocp
 
-    from rvggt_jax.checkpoint import _quiet_absl
+    from rvggt_jax.weights.checkpoint import _quiet_absl
 
     d = Path(directory).absolute() / STATE_DIR
     mgr = ocp.CheckpointManager(d)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from rvggt_jax.eval.datasets.base import DatasetError, Scene
-from rvggt_jax.eval.datasets.colmap import read_model, write_model_bin
+from rvggt_jax.eval.datasets.colmap_binary import read_model, write_model_bin
 from rvggt_jax.eval.datasets.files import save_image
 
 NAME = "tnt"

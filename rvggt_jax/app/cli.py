@@ -1,0 +1,233 @@
+"""`rvggt`: command-line front end (argument parsing, messages, error mapping; the work is
+in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
+
+    rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (see `convert`)
+    rvggt reconstruct INPUT --weights CKPT --out OUT_DIR [options]
+                                          INPUT: a folder of images or a video file;
+                                          CKPT: a local checkpoint or a hub repo id
+                                          (facebook/VGGT-1B: downloaded, converted once)
+    rvggt view OUT_DIR [--port P]         interactive 3D viewer (viser) on localhost
+    rvggt demo [--out DIR]                the whole pipeline on bundled images with a
+                                          tiny RANDOM-weight model (seconds)
+    rvggt finetune DATA_DIR --out DIR     fine-tune on images + cameras (+ depth); see
+                                          docs/training.md (`rvggt_jax.train`)
+    rvggt --version
+
+`reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
+(COLMAP text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/,
+thumbnails/, trajectory.png (and frames/ for a video); see
+`rvggt_jax.io.export`.
+
+Failures exit non-zero with `rvggt: error: ...` on stderr, details indented under it
+(set RVGGT_DEBUG=1 for the traceback). Compiled programs are cached across runs in
+$RVGGT_CACHE_DIR (default ~/.cache/rvggt-jax/xla; RVGGT_CACHE_DIR=off disables it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Sequence
+
+from rvggt_jax.app.messages import CLIError, format_error, one_line
+from rvggt_jax.app.commands import (  # noqa: F401 - re-exported: the API of `rvggt_jax.app.cli` before the split
+    DEFAULT_CONF_THRESHOLD,
+    DEMO_IMAGES,
+    DEMO_WEIGHTS,
+    EXAMPLES_DIR,
+    PROG,
+    RANDOM_WEIGHTS_NOTICE,
+    demo,
+    enable_compilation_cache,
+    known_presets,
+    reconstruct_folder,
+    select_frames,
+    warn,
+)
+
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line too."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        raise CLIError(f"{message} (see `{self.prog} --help`)", code=2)
+
+
+# ---------------------------------------------------------------------------------------
+# convert
+# ---------------------------------------------------------------------------------------
+
+
+def _convert(argv: Sequence[str]) -> int:
+    """`rvggt convert ...` = the converter's own command line (`python -m rvggt_jax.convert`)."""
+    try:
+        from rvggt_jax.app.convert_command import main as entry
+    except ImportError as e:
+        raise CLIError(f"the converter is not installed ({one_line(e)})") from None
+    return int(entry(list(argv), prog=f"{PROG} convert") or 0)
+
+
+# ---------------------------------------------------------------------------------------
+# argument parsing
+# ---------------------------------------------------------------------------------------
+
+
+def _positive_float(text: str) -> float:
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from rvggt_jax import __version__
+
+    parser = _Parser(prog=PROG, description="VGGT feed-forward 3D reconstruction in JAX.")
+    parser.add_argument("--version", action="version", version=f"{PROG} (rvggt-jax) {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    p = sub.add_parser("convert", help="convert an upstream VGGT checkpoint (.safetensors) to rvggt-jax (Orbax)",
+                       add_help=False)
+    p.add_argument("args", nargs=argparse.REMAINDER, help="SRC DST [converter options]; see `rvggt convert --help`")
+
+    presets = ", ".join(known_presets())
+    p = sub.add_parser("reconstruct", help="reconstruct a folder of images or a video",
+                       description="Reconstruct cameras, depth and a point cloud from the images of a folder "
+                                   "(sorted by name; other files are skipped) or the frames of a video.")
+    p.add_argument("images_dir", metavar="INPUT",
+                   help="folder of images (png, jpg, ...) or a video file (mp4, mov, mkv, webm, ...)")
+    p.add_argument("--weights", required=True, metavar="CKPT",
+                   help="checkpoint: a Hugging Face repo id (facebook/VGGT-1B: downloaded into the hub cache and "
+                        "converted once under ~/.cache/rvggt-jax), a folder with model.safetensors "
+                        "[+ config.json], a .safetensors file, or a converted (Orbax) folder")
+    p.add_argument("--out", required=True, metavar="OUT_DIR",
+                   help="output folder (created; must be empty unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="reuse a non-empty output folder: delete the files the previous rvggt run there wrote "
+                        "(listed in its .rvggt-manifest.json) and nothing else")
+    _common_options(p, presets)
+    p.add_argument("--mode", default="crop", choices=("crop", "pad"),
+                   help="crop: width 518, height centre-cropped to <= 518 (default); "
+                        "pad: longest side 518, white-padded to square")
+    p.add_argument("--conf-threshold", default=DEFAULT_CONF_THRESHOLD, metavar="X",
+                   help="keep points whose confidence is >= X (VGGT confidences are >= 1), or, written "
+                        "'P%%', at or above the P-th percentile of all confidences (default %(default)s; "
+                        "'0%%' keeps every point)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="use at most N images (or video frames), evenly spaced")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--every", type=int, default=None, metavar="N",
+                   help="video: keep every N-th frame")
+    g.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+                   help="video: keep F frames per second (default for a video: 1)")
+    p.add_argument("--skip-bad", action="store_true",
+                   help="leave out images that cannot be read, with a warning naming each (default: stop)")
+    p.add_argument("--ignore-exif", action="store_true",
+                   help="read images as stored, ignoring their EXIF orientation (upstream's behaviour)")
+    p.add_argument("--points", default="depth", choices=("depth", "pointmap"),
+                   help="point cloud from the depth maps unprojected with the predicted cameras "
+                        "(default) or from the point-map head")
+    p.add_argument("--max-points", type=int, default=2_000_000, metavar="N",
+                   help="cap on the points written to points.ply (random subset; default %(default)s)")
+    p.add_argument("--all-colmap-points", action="store_true",
+                   help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
+                        "at most 100000)")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="split the frames over N local devices, one forward pass (default: all of them when "
+                        "there are several)")
+
+    p = sub.add_parser("view", help="interactive 3D viewer of a reconstruction (in the browser, localhost)",
+                       description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
+                                   "frustums with their images, frame selection) on http://localhost:PORT.")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="folder written by `rvggt reconstruct`")
+    p.add_argument("--port", type=int, default=8080, help="port on localhost (default %(default)s)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine only)")
+
+    p = sub.add_parser("demo", help="run the pipeline on bundled images with a tiny RANDOM-weight model",
+                       description=RANDOM_WEIGHTS_NOTICE)
+    p.add_argument("--out", default="rvggt_demo", metavar="DIR", help="output folder (default %(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier demo run in DIR")
+    _common_options(p, presets)
+
+    from rvggt_jax.app.eval_command import add_eval_parser
+    from rvggt_jax.app.finetune_command import add_finetune_parser
+
+    add_eval_parser(sub)
+    add_finetune_parser(sub)
+    return parser
+
+
+def _common_options(p: argparse.ArgumentParser, presets: str) -> None:
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help=f"compression preset of the global attention ({presets}); default: the checkpoint's")
+    p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"),
+                   help="compute dtype of the aggregator (bfloat16: upstream's mixed precision, about half "
+                        "the memory; the heads stay float32; default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or messages (errors and warnings only)")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `rvggt` console script; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] == "convert":
+            return _convert(argv[1:])
+        args = build_parser().parse_args(argv)
+        if args.command is None:
+            build_parser().print_help()
+            return 2
+        if args.command == "reconstruct":
+            reconstruct_folder(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
+                               conf_threshold=args.conf_threshold, max_frames=args.max_frames,
+                               points_from=args.points, max_points=args.max_points, quiet=args.quiet,
+                               overwrite=args.overwrite, dtype=args.dtype, devices=args.devices,
+                               every=args.every, fps=args.fps,
+                               skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif,
+                               all_colmap_points=args.all_colmap_points)
+        elif args.command == "view":
+            from rvggt_jax.app.viewer import serve
+
+            serve(args.out_dir, port=args.port, host=args.host)
+        elif args.command == "demo":
+            demo(args.out, preset=args.preset, quiet=args.quiet, overwrite=args.overwrite, dtype=args.dtype)
+        elif args.command == "eval":
+            from rvggt_jax.app.eval_command import run_eval_command
+
+            run_eval_command(args)
+        elif args.command == "finetune":
+            from rvggt_jax.app.finetune_command import run_finetune_command
+
+            run_finetune_command(args)
+        return 0
+    except CLIError as e:
+        if os.environ.get("RVGGT_DEBUG"):
+            raise
+        print(format_error(PROG, str(e)), file=sys.stderr, flush=True)
+        return e.code
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print(f"{PROG}: error: out of memory (use fewer frames with --max-frames or a compression --preset)",
+              file=sys.stderr)
+        return 1
+    except Exception as e:  # one line, no traceback, for anything unexpected
+        if os.environ.get("RVGGT_DEBUG"):
+            raise
+        msg = one_line(e)
+        if "RESOURCE_EXHAUSTED" in msg or "out of memory" in msg.lower():
+            msg = "out of memory (use fewer frames with --max-frames or a compression --preset): " + msg[:300]
+        print(f"{PROG}: error: {type(e).__name__}: {msg} (set RVGGT_DEBUG=1 for the traceback)",
+              file=sys.stderr, flush=True)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""`rvggt eval`: score compression presets on a dataset, or against dense.
+
+    rvggt eval --dataset 7scenes --root /data/7scenes --weights W --presets dense,regime --stride 10 --out ev/
+    rvggt eval --dataset images --root my_images/ --against dense --presets regime,fastvggt --out ev/
+    rvggt eval --dataset tnt --root /tmp/syn --synthetic --presets dense,regime --size 70 --out ev/
+
+`rvggt_jax.app.cli` registers the sub-command (`add_eval_parser`) and calls `run_eval_command`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+__all__ = ["add_eval_parser", "run_eval_command", "write_synthetic_set"]
+
+SYNTHETIC_SCENES = 2
+RANDOM_WEIGHTS_NOTICE = (
+    "NOTE: no --weights: rvggt eval runs the tiny RANDOM-weight model (rvggt_jax/examples_data/tiny): the whole "
+    "pipeline runs, the scores are meaningless. For the paper's numbers pass --weights with converted VGGT-1B "
+    "weights (`rvggt convert`).")
+
+
+def add_eval_parser(sub) -> None:
+    """Register `eval` on an argparse sub-parsers object."""
+    from rvggt_jax.eval.datasets import FORMATS, SAMPLING
+
+    p = sub.add_parser(
+        "eval", help="score compression presets on a dataset (or against dense)",
+        description="Run each preset on every scene of a dataset and score it with the dataset's protocol "
+                    "(docs/eval.md), or, with --against dense, against the dense model's own outputs (no ground "
+                    "truth needed). Writes OUT/results.csv, OUT/results.md, OUT/plots/ and per-scene results in "
+                    "OUT/runs/ (a rerun with the same settings resumes from them).")
+    p.add_argument("--dataset", required=True, choices=sorted(FORMATS), metavar="NAME",
+                   help=f"dataset format: {', '.join(sorted(FORMATS))} ('images': a folder of images, for --against)")
+    p.add_argument("--root", required=True, metavar="DIR", help="the dataset's folder")
+    p.add_argument("--presets", default="dense,regime", metavar="P1,P2",
+                   help="comma-separated compression presets (default %(default)s)")
+    p.add_argument("--weights", default=None, metavar="CKPT",
+                   help="checkpoint (default: the bundled tiny RANDOM-weight model, for trying the pipeline)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="at most N frames per scene (how: --sampling; default: the protocol's)")
+    g.add_argument("--stride", type=int, default=None, metavar="K", help="every K-th frame (keyframes)")
+    p.add_argument("--sampling", default=None, choices=SAMPLING,
+                   help="how --frames picks frames (default: the protocol's, else first)")
+    p.add_argument("--seed", type=int, default=0, help="seed of --sampling random (default 0)")
+    p.add_argument("--scenes", default=None, metavar="S1,S2", help="comma-separated scene names (default: all)")
+    p.add_argument("--size", type=int, default=518, metavar="W",
+                   help="network image width, a multiple of 14 (default 518, the paper's 518x392)")
+    p.add_argument("--against", default=None, metavar="PRESET",
+                   help="score each preset against this preset's outputs instead of ground truth (e.g. dense)")
+    p.add_argument("--gt-root", default=None, metavar="DIR", help="ScanNet: folder of <scene>/<scene>_vh_clean_2.ply")
+    p.add_argument("--synthetic", action="store_true",
+                   help=f"first write {SYNTHETIC_SCENES} small procedural scenes with exact ground truth into --root, "
+                        "in --dataset's format")
+    p.add_argument("--no-plots", action="store_true", help="skip the plots")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or messages")
+
+
+def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES, frames: int | None = None) -> list[Path]:
+    """`scenes` procedural scenes (`rvggt_jax.synthetic`) of 84x63 frames in `dataset`'s
+    format under `root` (with the 7 Scenes calibration f = 525 x 84 / 640, which every
+    format can store).
+    frames: per scene; default 21 where the protocol keeps every 10th frame (3 kept),
+    else 8."""
+    from rvggt_jax.eval.protocols import PROTOCOLS
+    from rvggt_jax.synthetic import make_scene, write_scene
+
+    if frames is None:
+        p = PROTOCOLS.get(dataset)
+        frames = 2 * p.stride + 1 if p is not None and p.stride > 1 else 8
+
+    w, h = 84, 63
+    return [write_scene(make_scene(frames, h, w, seed=i, focal=(525 * w / 640, 525 * h / 480),
+                                   name=f"synthetic_{i + 1:03d}"), dataset, root) for i in range(scenes)]
+
+
+def _fail(msg: str):
+    from rvggt_jax.app.messages import CLIError
+
+    raise CLIError(msg)
+
+
+def run_eval_command(args: argparse.Namespace) -> list[dict]:
+    """Execute a parsed `rvggt eval`; raises `rvggt_jax.app.cli.CLIError` on bad input."""
+    from rvggt_jax.app.messages import one_line as _one_line
+    from rvggt_jax.app.commands import DEMO_WEIGHTS, enable_compilation_cache, known_presets
+    from rvggt_jax.eval.datasets import DatasetError
+    from rvggt_jax.eval.protocols import AGAINST_HIGHER, AGAINST_METRICS, PROTOCOLS
+    from rvggt_jax.eval.report import write_csv, write_markdown, write_plots
+    from rvggt_jax.eval.runner import EvalSettings, evaluate
+
+    say = (lambda *_: None) if args.quiet else (lambda m: print(m, flush=True))
+    presets = tuple(p.strip() for p in args.presets.split(",") if p.strip())
+    if not presets:
+        _fail("--presets is empty")
+    for p in presets + ((args.against,) if args.against else ()):
+        if p not in known_presets():
+            _fail(f"unknown preset {p!r}; known presets: {', '.join(known_presets())}")
+    if args.frames is not None and args.frames < 1:
+        _fail(f"--frames must be at least 1; got {args.frames}")
+    if args.stride is not None and args.stride < 1:
+        _fail(f"--stride must be at least 1; got {args.stride}")
+    if args.size < 14 or args.size % 14:
+        _fail(f"--size must be a positive multiple of 14; got {args.size}")
+    if args.dataset == "images" and not args.against:
+        _fail("--dataset images has no ground truth: add --against dense")
+    weights = args.weights
+    if weights is None:
+        say(RANDOM_WEIGHTS_NOTICE)
+        weights = str(DEMO_WEIGHTS)
+    elif not Path(weights).exists():
+        _fail(f"checkpoint not found: {weights}")
+    root = Path(args.root)
+    if args.synthetic:
+        root.mkdir(parents=True, exist_ok=True)
+        made = write_synthetic_set(args.dataset, root)
+        say(f"wrote {len(made)} synthetic scene(s) in {args.dataset} format under {root}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        _fail(f"output path exists and is not a folder: {out}")
+    out.mkdir(parents=True, exist_ok=True)
+    settings = EvalSettings(
+        dataset=args.dataset, root=str(root), presets=presets, out=str(out), weights=str(weights), frames=args.frames,
+        stride=args.stride, sampling=args.sampling, seed=args.seed,
+        scenes=tuple(s.strip() for s in args.scenes.split(",")) if args.scenes else None, size=args.size,
+        against=args.against, gt_root=args.gt_root)
+    enable_compilation_cache()
+    t0 = time.perf_counter()
+    try:
+        rows = evaluate(settings, progress=not args.quiet, say=say)
+    except (DatasetError, ValueError, FileNotFoundError) as e:
+        _fail(_one_line(e))
+    if not rows:
+        _fail("nothing was evaluated (no scene, or every preset is the --against reference)")
+    if args.against:
+        metrics, higher, title = AGAINST_METRICS, AGAINST_HIGHER, f"{args.dataset}: presets against {args.against}"
+    else:
+        proto = PROTOCOLS[args.dataset]
+        metrics, higher, title = proto.metrics, proto.higher_is_better, f"{args.dataset} ({proto.source})"
+    write_csv(out / "results.csv", rows)
+    write_markdown(out / "results.md", rows, metrics, title, higher)
+    if not args.no_plots:
+        write_plots(out / "plots", rows, metrics, out / "runs", args.against)
+    say(f"evaluated {len({r['scene'] for r in rows})} scene(s) x {len({r['preset'] for r in rows})} preset(s) in "
+        f"{time.perf_counter() - t0:.1f} s: {out / 'results.md'}, {out / 'results.csv'}")
+    if not args.quiet:
+        print((out / "results.md").read_text(), flush=True)
+    return rows

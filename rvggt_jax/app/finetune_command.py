@@ -1,0 +1,51 @@
+"""`rvggt finetune`: argument parsing only (the work is `rvggt_jax.train.loop.finetune`), so
+that building the `rvggt` parser imports neither JAX nor optax."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def add_finetune_parser(sub) -> None:
+    """The `rvggt finetune` subcommand."""
+    p = sub.add_parser("finetune", help="fine-tune on a folder of images + cameras (+ depth)",
+                       description="Fine-tune VGGT with optax (AdamW, warm-up + cosine, clipping) on "
+                                   "DATA_DIR/<scene>/{images/, cameras.json, depth/}; see docs/training.md.")
+    p.add_argument("data_dir", metavar="DATA_DIR")
+    p.add_argument("--out", required=True, help="output folder (train state, log, fine-tuned model); resumes")
+    p.add_argument("--weights", default=None, help="checkpoint to start from (folder, .safetensors or hub id)")
+    p.add_argument("--config", default=None, help="config.json for a randomly initialised model (no --weights)")
+    p.add_argument("--steps", type=int, default=1000)
+    p.add_argument("--frames", type=int, default=8, help="frames per sequence (default %(default)s)")
+    p.add_argument("--size", default="224x294", help="network input HxW, multiples of 14 (default %(default)s)")
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--lr", type=float, default=1e-5, help="peak learning rate (default %(default)s)")
+    p.add_argument("--warmup", type=int, default=None, help="warm-up steps (default: 10%% of --steps, <= 500)")
+    p.add_argument("--train", default="all",
+                   help="'all', 'heads', or comma-separated parameter path prefixes, e.g. depth_head,camera_head")
+    p.add_argument("--preset", default=None, help="compression preset during training (default: dense)")
+    p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
+    p.add_argument("--remat", action="store_true", help="rematerialise every block (less memory, ~1.3x time)")
+    p.add_argument("--save-every", type=int, default=500)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+
+
+def run_finetune_command(args) -> int:
+    """`rvggt finetune` from parsed arguments."""
+    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.train.loop import FinetuneOptions, finetune, load_model
+
+    try:
+        h, w = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size must be HxW, e.g. 224x294; got {args.size!r}") from None
+    train = args.train if args.train in ("all", "heads") else tuple(t for t in args.train.split(",") if t)
+    opts = FinetuneOptions(steps=args.steps, frames=args.frames, size=(h, w), batch=args.batch,
+                           learning_rate=args.lr, warmup_steps=args.warmup, train=train, preset=args.preset,
+                           dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)
+    if not Path(args.data_dir).is_dir():
+        raise InputError(f"no such data folder: {args.data_dir}")
+    params, config = load_model(args.weights, args.config, args.seed)
+    finetune(args.data_dir, args.out, params, config, opts, log=(lambda s: None) if args.quiet else print)
+    return 0

@@ -1,0 +1,180 @@
+"""`rvggt_forward`: the whole VGGT forward pass (aggregator + heads) as one pure function.
+
+    out = jax.jit(rvggt_forward)(params, images, config)
+
+`config` is a static pytree node, so plain `jax.jit` compiles once per
+(input shape, config); `static_argnames="config"` works too.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax.model.aggregator import aggregator_forward
+from rvggt_jax.ops.chunks import zeros_after
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.model.heads.camera import camera_head
+from rvggt_jax.model.heads.dpt import dense_heads
+from rvggt_jax.model.heads.track import track_head
+from rvggt_jax.model.layers import Params
+
+
+class InputError(ValueError):
+    """Images or query points the model cannot take."""
+
+
+def _is_float(x: Any) -> bool:
+    return jnp.issubdtype(jnp.result_type(x), jnp.floating)
+
+
+def check_images(images: Any, config: VGGTConfig) -> jax.Array:
+    """Validate and batch images: [S, 3, H, W] or [B, S, 3, H, W] float in [0, 1] ->
+    [B, S, 3, H, W]. Only static facts (rank, shape, dtype) are checked, so this also
+    works on tracers under jit."""
+    shape = tuple(np.shape(images))
+    if len(shape) not in (4, 5):
+        raise InputError(f"images must be [S,3,H,W] or [B,S,3,H,W]; got rank {len(shape)} shape {shape}")
+    if not _is_float(images):
+        raise InputError(
+            f"images must be a float array in [0, 1]; got dtype {jnp.result_type(images)} "
+            "(divide uint8 images by 255)"
+        )
+    if len(shape) == 4:
+        images = images[None]
+        shape = (1,) + shape
+    b, s, c, h, w = shape
+    if c != 3:
+        raise InputError(f"images must have 3 (RGB) channels in axis -3; got {c} (shape {shape})")
+    ps = config.patch_size
+    if h % ps or w % ps:
+        raise InputError(f"image height and width must be multiples of the patch size {ps}; got {h} x {w}")
+    if min(b, s, h, w) == 0:
+        raise InputError(f"images has an empty axis: shape {shape}")
+    return jnp.asarray(images, jnp.float32)
+
+
+QUERY_HELP = "query_points are pixel (x, y) in frame 0 of the network input, shape [N, 2] or [B, N, 2]"
+
+
+def as_query_points(query_points: Any) -> jax.Array:
+    """Query points as users write them -> [N, 2] or [B, N, 2] float32.
+
+    A query point is a pixel (x, y) in frame 0 of the network input (the preprocessed
+    image, e.g. 518 x 392, not the original photo): x to the right, y down, continuous.
+    Lists, tuples, NumPy and JAX arrays of ints or floats are accepted (inside `jax.jit`
+    a list arrives as a list of scalars); anything else is an `InputError` saying what
+    was given."""
+    if query_points is None or isinstance(query_points, (str, bytes, dict, set)):
+        raise InputError(f"{QUERY_HELP}; got a {type(query_points).__name__}")
+    try:
+        qp = jnp.asarray(query_points)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{QUERY_HELP}; cannot read a {type(query_points).__name__} as numbers "
+                         f"({' '.join(str(e).split())[:200]})") from None
+    if qp.ndim not in (2, 3) or qp.shape[-1] != 2:
+        raise InputError(f"{QUERY_HELP}; got shape {tuple(qp.shape)}")
+    if qp.dtype == jnp.bool_ or not (jnp.issubdtype(qp.dtype, jnp.floating) or jnp.issubdtype(qp.dtype, jnp.integer)):
+        raise InputError(f"{QUERY_HELP}; got dtype {qp.dtype}")
+    return qp.astype(jnp.float32)
+
+
+def check_query_points(query_points: Any, batch: int) -> jax.Array:
+    """`as_query_points`, then batched: [N, 2] or [B, N, 2] -> [B, N, 2] float32."""
+    qp = as_query_points(query_points)
+    if qp.ndim == 2:
+        qp = qp[None]
+    if qp.shape[0] != batch:
+        if qp.shape[0] != 1:
+            raise InputError(f"query_points batch {qp.shape[0]} does not match images batch {batch}")
+        qp = jnp.broadcast_to(qp, (batch,) + qp.shape[1:])
+    return qp
+
+
+def check_params(params: Params, config: VGGTConfig) -> None:
+    """Catch a config that does not describe these params before shapes fail deep inside."""
+    try:
+        width = params["aggregator"]["camera_token"].shape[-1]
+    except (KeyError, TypeError) as e:
+        raise InputError("params are not a converted VGGT tree (no aggregator.camera_token)") from e
+    if width != config.embed_dim:
+        raise InputError(f"params have embed_dim {width} but config says {config.embed_dim}")
+
+
+def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
+                  query_points: jax.Array | None = None) -> dict[str, Any]:
+    """VGGT forward pass.
+
+    images: [B, S, 3, H, W] or [S, 3, H, W], float in [0, 1], H and W multiples of 14.
+    query_points: optional [B, N, 2] or [N, 2] pixel (x, y) in frame 0 (needs the track head).
+
+    Returns (B is added when the input had none), as upstream:
+      pose_enc [B,S,9], pose_enc_list (list of [B,S,9], one per camera-head iteration),
+      depth [B,S,H,W,1], depth_conf [B,S,H,W], world_points [B,S,H,W,3],
+      world_points_conf [B,S,H,W], images [B,S,3,H,W];
+      with query points: track [B,S,N,2], vis [B,S,N], conf [B,S,N];
+      on request (config.with_outputs): saliency [B,S,h*w], patch_tokens [B*S,h*w,C],
+      aggregated_XX [B,S,P,2C].
+    """
+    images, query_points = check_inputs(params, images, config, query_points)
+    return forward_frames(params, images, config, query_points)
+
+
+def check_inputs(params: Params, images: Any, config: VGGTConfig, query_points: Any = None
+                 ) -> tuple[jax.Array, jax.Array | None]:
+    """The checks of a forward's inputs (config, params, images, query points): images as
+    [B, S, 3, H, W], query points as [B, N, 2] or None; `InputError` naming the problem."""
+    config.validate()
+    check_params(params, config)
+    images = check_images(images, config)
+    if query_points is not None:
+        if not config.enable_track or "track_head" not in params:
+            raise InputError("query_points given but this model has no track head")
+        query_points = check_query_points(query_points, images.shape[0])
+    return images, query_points
+
+
+def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None = None,
+                   shards: FrameShards | None = None) -> dict[str, Any]:
+    """`rvggt_forward` on checked inputs, over the frames of this device: images
+    [B, S, 3, H, W] are this device's frames (`shards`, inside `jax.shard_map`; default
+    all frames on one device) and so is every per-frame output."""
+    b, s, _, hh, ww = images.shape
+    shards = FrameShards.single(s) if shards is None else shards
+    with_track = query_points is not None
+    keep = set(config.needed_layers(with_track)) | set(config.return_layers)
+    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards)
+
+    out: dict[str, Any] = {}
+    if config.enable_camera:
+        # the camera trunk attends across frames: every device runs it on every frame's
+        # camera token (B x S x 2C floats) and keeps its own frames
+        cam = shards.gather(agg[config.depth - 1].token(0)[:, :, None], 1)
+        pose_enc_list = [shards.local_part(pe, 1) for pe in camera_head(params["camera_head"], cam, config.camera_head)]
+        out["pose_enc"] = pose_enc_list[-1]
+        out["pose_enc_list"] = pose_enc_list
+    grid = config.token_grid((hh, ww))
+    enabled = {"depth_head": config.enable_depth, "point_head": config.enable_point}
+    out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid))
+    if with_track:
+        tracks, vis, conf = track_head(params["track_head"], agg, config.track_head_config, grid, query_points,
+                                       shards=shards)
+        out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
+    # The returned images are a copy of the input (an argument cannot be an output): made
+    # from the last head output (x 1, exact) so that XLA makes it at the end, not at the
+    # program start where it would sit through the whole forward.
+    last = jax.tree.leaves(out)
+    out["images"] = images * (1.0 + zeros_after((), jnp.float32, last[-1])) if last else images
+    if config.return_saliency:
+        out["saliency"], out["patch_tokens"] = saliency, patch_tokens
+    for i in config.return_layers:
+        out[f"aggregated_{i:02d}"] = agg[i].array()
+
+    if "depth" in out:
+        chex.assert_shape(out["depth"], (b, s, hh, ww, 1))
+    return out

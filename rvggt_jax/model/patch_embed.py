@@ -1,0 +1,183 @@
+"""DINOv2 ViT/14 with registers: the patch embed of VGGT, and the [CLS] saliency Psi.
+
+Psi (the RegimeVGGT saliency) is the [CLS] query's attention row in the last DINO block,
+softmax with the 1/sqrt(d) scale, averaged over heads, patch entries only. It is read
+off the q and k that block computes anyway.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax.model import layers
+from rvggt_jax.ops.attention import attention
+from rvggt_jax.ops.chunks import update_tokens
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.model.layers import Params
+
+# ImageNet statistics that upstream's aggregator normalises with before the patch embed.
+RESNET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+RESNET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+
+
+# ---------------------------------------------------------------------------------------
+# Position-embedding interpolation, equal to torch's antialiased bicubic.
+# jax.image.resize uses the Keys kernel a=-0.5 *without* torch's support/normalisation
+# rules and another kernel when not antialiasing, so we build torch's weight matrix.
+# Shapes are static, so the matrices are numpy constants folded into the program.
+# ---------------------------------------------------------------------------------------
+
+
+def _cubic(x: np.ndarray, a: float) -> np.ndarray:
+    x = np.abs(x)
+    near = ((a + 2) * x - (a + 3)) * x * x + 1
+    far = (((x - 5) * x + 8) * x - 4) * a
+    return np.where(x < 1, near, np.where(x < 2, far, 0.0))
+
+
+@functools.lru_cache(maxsize=64)
+def bicubic_aa_matrix(in_size: int, out_size: int, scale: float | None = None) -> np.ndarray:
+    """[out_size, in_size] weights of torch's `interpolate(mode="bicubic", antialias=True,
+    align_corners=False)` along one axis. `scale` is input/output (defaults to the size
+    ratio; torch passes 1/scale_factor when a scale factor is given)."""
+    if in_size == out_size:
+        # torch skips the pass along an axis whose size does not change, even when a
+        # scale factor (interpolate_offset) would shift the sampling points.
+        return np.eye(in_size, dtype=np.float32)
+    scale = in_size / out_size if scale is None else scale
+    # torch's antialiased kernels use the PIL cubic (a = -0.5) and widen it when shrinking.
+    support = 2.0 * scale if scale >= 1.0 else 2.0
+    inv = 1.0 / scale if scale >= 1.0 else 1.0
+    m = np.zeros((out_size, in_size), np.float64)
+    for i in range(out_size):
+        center = scale * (i + 0.5)
+        lo = max(int(center - support + 0.5), 0)
+        hi = min(int(center + support + 0.5), in_size)
+        j = np.arange(lo, hi)
+        w = _cubic((j - center + 0.5) * inv, -0.5)
+        m[i, lo:hi] = w / w.sum()
+    return m.astype(np.float32)
+
+
+def interpolate_pos_embed(pos_embed: jax.Array, h: int, w: int, offset: float = 0.0) -> jax.Array:
+    """Resize the DINO position table to an h x w patch grid.
+
+    pos_embed [1, 1 + M*M, C] -> [1, 1 + h*w, C] (class entry untouched)."""
+    n = pos_embed.shape[1] - 1
+    m = int(math.isqrt(n))
+    if m * m != n:
+        raise ValueError(f"pos_embed holds {n} patch entries, not a square grid")
+    if h == m and w == m:
+        return pos_embed
+    cls_pos, grid = pos_embed[:, :1], pos_embed[0, 1:].reshape(m, m, -1)
+    if offset:
+        # upstream passes a scale factor (h + offset) / M, which torch turns back into a scale
+        ry = bicubic_aa_matrix(m, h, m / (h + offset))
+        rx = bicubic_aa_matrix(m, w, m / (w + offset))
+    else:
+        ry, rx = bicubic_aa_matrix(m, h), bicubic_aa_matrix(m, w)
+    hp = jax.lax.Precision.HIGHEST
+    grid = jnp.einsum("ym,mnc->ync", ry, grid, precision=hp)
+    grid = jnp.einsum("xn,ync->yxc", rx, grid, precision=hp)
+    return jnp.concatenate([cls_pos, grid.reshape(1, h * w, -1)], axis=1)
+
+
+# ---------------------------------------------------------------------------------------
+# The ViT
+# ---------------------------------------------------------------------------------------
+
+
+def patchify(p: Params, images: jax.Array, patch: int) -> jax.Array:
+    """The stride-`patch` convolution as a matmul: images [N, 3, H, W] -> [N, h*w, C]."""
+    n, c, hh, ww = images.shape
+    h, w = hh // patch, ww // patch
+    x = images.reshape(n, c, h, patch, w, patch).transpose(0, 2, 4, 3, 5, 1)
+    x = x.reshape(n, h * w, patch * patch * c)
+    kernel = p["kernel"].reshape(patch * patch * c, -1)  # HWIO flattens in the same order
+    return layers.linear({"kernel": kernel, "bias": p["bias"]}, x)
+
+
+def cls_saliency(q: jax.Array, k: jax.Array, num_prefix: int) -> jax.Array:
+    """Psi: softmax of the [CLS] query (token 0) over all keys, head-averaged, patch
+    entries only. q, k [N, L, H, D] -> [N, L - num_prefix]."""
+    scale = 1.0 / math.sqrt(q.shape[-1])
+    logits = jnp.einsum("nhd,nkhd->nhk", q[:, 0] * jnp.asarray(scale, q.dtype), k,
+                        preferred_element_type=jnp.float32)
+    return jax.nn.softmax(logits, axis=-1).mean(axis=1)[:, num_prefix:]
+
+
+def dino_forward(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
+    """images [N, 3, H, W] (normalised) -> (x_norm_patchtokens [N, h*w, C] float32,
+    saliency Psi [N, h*w] float32); see `dino_tokens`."""
+    x, num_prefix, saliency = dino_tokens(p, images, config)
+    return x[:, num_prefix:], saliency
+
+
+def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
+    """DINOv2 forward on normalised images, its blocks in `config.compute_dtype` (the
+    residual stream in float32, as under torch's autocast).
+
+    images [N, 3, H, W] -> (every token after the final norm [N, 1 + R + h*w, C] float32
+    ([CLS], R registers, patches), the prefix length 1 + R, saliency Psi [N, h*w] float32).
+    The final norm is applied in place: the aggregator overwrites the prefix with its own
+    camera and register tokens in the same buffer."""
+    dino = config.dino
+    dtype = config.compute_dtype
+    ps = config.patch_size
+    n, _, hh, ww = images.shape
+    h, w = hh // ps, ww // ps
+    eps = dino.layer_norm_eps
+
+    x = patchify(p["patch_embed"]["proj"], images.astype(dtype), ps).astype(jnp.float32)
+    cls = jnp.broadcast_to(p["cls_token"].astype(jnp.float32), (n, 1, x.shape[-1]))
+    x = jnp.concatenate([cls, x], axis=1)
+    x = x + interpolate_pos_embed(p["pos_embed"].astype(jnp.float32), h, w, dino.interpolate_offset)
+    regs = jnp.broadcast_to(p["register_tokens"].astype(jnp.float32), (n,) + p["register_tokens"].shape[1:])
+    x = jnp.concatenate([x[:, :1], regs, x[:, 1:]], axis=1)
+    num_prefix = 1 + regs.shape[1]
+
+    depth = dino.depth
+    if depth > 1:
+        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype,
+                               remat=config.remat)
+
+    # The last block's attention hook also returns the saliency, read off the q and k it
+    # computes anyway; whole images per chunk, like every block.
+    blk = p["blocks"][str(depth - 1)]
+    qkv = layers.qkv_fn(blk, dino.num_heads, eps, dtype)
+
+    def attend_with_saliency(xc):
+        q, k, v = qkv(xc)
+        return attention(q, k, v), cls_saliency(q, k, num_prefix)
+
+    hidden = blk["mlp"]["fc1"]["kernel"].shape[-1]
+    x, saliency = layers.run_block(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True, axis=0,
+                                   bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
+
+    c = x.shape[-1]
+    x = update_tokens(lambda xc: layers.layer_norm(p["norm"], xc, eps, jnp.float32), x.reshape(1, -1, c),
+                      bytes_per_row=c * 4 * 2).reshape(x.shape)
+    chex.assert_shape(x, (n, num_prefix + h * w, config.embed_dim))
+    chex.assert_shape(saliency, (n, h * w))
+    return x, num_prefix, saliency
+
+
+def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
+    """images [B, S, 3, H, W] in [0, 1] -> (patch tokens [B*S, h*w, C], Psi [B, S, h*w])."""
+    x, num_prefix, saliency = patch_embed_tokens(p, images, config)
+    return x[:, num_prefix:], saliency
+
+
+def patch_embed_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
+    """images [B, S, 3, H, W] in [0, 1] -> (DINO tokens [B*S, 1 + R + h*w, C] with the
+    patch tokens after the prefix of 1 + R, the prefix length, Psi [B, S, h*w])."""
+    b, s, c, hh, ww = images.shape
+    x = (images - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
+    tokens, num_prefix, saliency = dino_tokens(p, x.reshape(b * s, c, hh, ww), config)
+    return tokens, num_prefix, saliency.reshape(b, s, -1)

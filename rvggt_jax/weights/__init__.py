@@ -1,0 +1,46 @@
+"""Weights: upstream VGGT (PyTorch) checkpoints -> rvggt-jax parameter pytrees, and loading them.
+
+- `upstream_state_dict_shapes(config)`: every upstream key and its shape.
+- `RULES` / `find_rule` / `apply_rule`: the explicit key -> pytree-path conversion table.
+- `CheckpointError`, `CheckpointFileError` (`errors.py`, shared with `rvggt_jax.weights.checkpoint`).
+- `convert_state_dict`, `load_safetensors`: convert (with one `CheckpointError` for all
+  problems); `expected_param_shapes(config)`: our converted tree of `ShapeDtypeStruct`s.
+"""
+
+from rvggt_jax.weights.converter import (
+    MappingSource,
+    SafetensorsSource,
+    TensorSource,
+    check_source,
+    convert_state_dict,
+    expected_param_paths,
+    expected_param_shapes,
+    flatten_params,
+    load_safetensors,
+    unflatten_params,
+)
+from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError
+from rvggt_jax.weights.rules import RULES, Rule, apply_rule, find_rule
+from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+
+
+
+__all__ = [
+    "CheckpointError",
+    "CheckpointFileError",
+    "MappingSource",
+    "RULES",
+    "Rule",
+    "SafetensorsSource",
+    "TensorSource",
+    "apply_rule",
+    "check_source",
+    "convert_state_dict",
+    "expected_param_paths",
+    "expected_param_shapes",
+    "find_rule",
+    "flatten_params",
+    "load_safetensors",
+    "unflatten_params",
+    "upstream_state_dict_shapes",
+]

@@ -1,0 +1,155 @@
+"""Checkpoints named by a Hugging Face repo id (`facebook/VGGT-1B`): downloaded with
+`huggingface_hub` into its own cache (HF_HOME, HF_HUB_CACHE), converted once to an Orbax
+checkpoint under the rvggt-jax cache and reused from there.
+
+    resolve_checkpoint("facebook/VGGT-1B") -> Path of the converted Orbax folder
+    resolve_checkpoint("weights/vggt-1b")  -> that local path, unchanged
+
+Converted copies: `$RVGGT_WEIGHTS_DIR/<owner>--<name>/<commit>/` (default
+`$XDG_CACHE_HOME/rvggt-jax/weights`, i.e. `~/.cache/rvggt-jax/weights`), one per hub
+commit, so a new upstream revision is converted again and an old one is never mixed in.
+Offline (`HF_HUB_OFFLINE=1` or no network) the hub cache is used; when even that lacks the
+files, the newest converted copy of the repo is used, and without one `HubError` says
+exactly which file is missing where.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Callable
+
+__all__ = ["HubError", "converted_root", "is_repo_id", "resolve_checkpoint"]
+
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+_READY = ".complete"  # written last: a folder without it is an interrupted conversion
+# owner/name as the hub spells them (letters, digits, '-', '_', '.'), nothing else
+_REPO_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,95}/[A-Za-z0-9][A-Za-z0-9_.-]{0,95}$")
+
+
+class HubError(RuntimeError):
+    """A repo id that could not be resolved to a checkpoint (the message says why)."""
+
+
+def is_repo_id(spec: str | os.PathLike) -> bool:
+    """True for `owner/name` that is not an existing local path (a local path wins)."""
+    s = os.fspath(spec)
+    return bool(_REPO_ID.match(s)) and not Path(s).exists() and ".." not in s
+
+
+def converted_root() -> Path:
+    """Folder of the converted (Orbax) copies of hub checkpoints."""
+    d = os.environ.get("RVGGT_WEIGHTS_DIR")
+    if d:
+        return Path(d)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "rvggt-jax" / "weights"
+
+
+def _repo_dir(repo_id: str) -> Path:
+    return converted_root() / repo_id.replace("/", "--")
+
+
+def _newest_converted(repo_id: str) -> Path | None:
+    done = [p.parent for p in _repo_dir(repo_id).glob(f"*/{_READY}")]
+    return max(done, key=lambda p: (p / _READY).stat().st_mtime) if done else None
+
+
+def _hub_cache() -> str:
+    from huggingface_hub import constants
+
+    return str(constants.HF_HUB_CACHE)
+
+
+def _offline() -> bool:
+    from huggingface_hub import constants
+
+    return bool(constants.HF_HUB_OFFLINE)
+
+
+def _download(repo_id: str, filename: str, revision: str | None) -> str:
+    from huggingface_hub import hf_hub_download
+
+    return hf_hub_download(repo_id, filename, revision=revision)
+
+
+def _explain(repo_id: str, filename: str, e: Exception) -> str:
+    """Why `filename` of `repo_id` could not be had, and what to do, in one sentence."""
+    name = type(e).__name__
+    where = f"the Hugging Face cache ({_hub_cache()})"
+    if name == "GatedRepoError":
+        return (f"{repo_id} is gated: request access on its hub page, then log in (`hf auth login`) "
+                f"or set HF_TOKEN")
+    if name == "RepositoryNotFoundError":
+        return f"no Hugging Face repo {repo_id} and no local path {repo_id} (misspelled? private repos need `hf auth login`)"
+    if name in ("EntryNotFoundError", "RemoteEntryNotFoundError"):
+        return f"{repo_id} has no {filename} (rvggt-jax reads the safetensors checkpoint)"
+    if name == "RevisionNotFoundError":
+        return f"{repo_id} has no such revision"
+    if _offline() or name in ("LocalEntryNotFoundError", "OfflineModeIsEnabled"):
+        how = "HF_HUB_OFFLINE is set" if _offline() else "the hub cannot be reached"
+        return (f"{filename} of {repo_id} is not in {where} and {how}; no converted copy in "
+                f"{_repo_dir(repo_id)} either (and no local path {repo_id}): download it once online "
+                f"(`hf download {repo_id} {filename} {CONFIG_FILE}`) or pass a local checkpoint")
+    return f"cannot download {filename} of {repo_id}: {name}: {e}"
+
+
+def resolve_checkpoint(spec: str | os.PathLike, *, revision: str | None = None, progress: bool = False,
+                       say: Callable[[str], None] | None = None) -> Path:
+    """A local checkpoint path for `spec`: itself when it is a local path (or does not
+    look like `owner/name`), else the converted Orbax copy of the hub repo (downloaded
+    and converted on first use). Raises `HubError` with the reason."""
+    if not is_repo_id(spec):
+        return Path(spec)
+    repo_id = os.fspath(spec)
+    say = say or (lambda msg: None)
+    try:
+        st = Path(_download(repo_id, WEIGHTS_FILE, revision))
+    except Exception as e:  # noqa: BLE001 - every hub failure becomes one explanation
+        fallback = _newest_converted(repo_id)
+        if fallback is not None and type(e).__name__ not in ("GatedRepoError", "RepositoryNotFoundError"):
+            say(f"{repo_id}: hub not reachable ({type(e).__name__}); using the converted copy {fallback}")
+            return fallback
+        raise HubError(_explain(repo_id, WEIGHTS_FILE, e)) from None
+    commit = st.parent.name  # .../snapshots/<commit>/model.safetensors
+    dst = _repo_dir(repo_id) / commit
+    if (dst / _READY).is_file():
+        return dst
+    try:
+        cfg = Path(_download(repo_id, CONFIG_FILE, commit))
+    except Exception:  # noqa: BLE001 - no config.json: the layout is inferred from the shapes
+        cfg = None
+    say(f"converting {repo_id} ({commit[:12]}) once to {dst} ...")
+    _convert_to(st, cfg, dst, progress)
+    return dst
+
+
+def _convert_to(st: Path, cfg: Path | None, dst: Path, progress: bool) -> None:
+    """Convert the safetensors `st` (config `cfg` or inferred) into `dst`, atomically:
+    into a temporary sibling first, renamed when complete."""
+    import jax
+
+    from rvggt_jax.weights.converter import load_safetensors
+    from rvggt_jax.weights.checkpoint import config_for_safetensors, save_orbax
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a config.json the hub mixin wrote is fine; inference is reported by load
+        config = config_for_safetensors(st, cfg)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+    try:
+        cpu = jax.devices("cpu")[0]
+        params = load_safetensors(st, config, progress=progress, leaf_fn=lambda x: jax.device_put(x, cpu))
+        save_orbax(params, config, tmp, overwrite=True)
+        (tmp / _READY).write_text(str(st) + "\n")
+        if dst.exists():  # an interrupted earlier conversion
+            shutil.rmtree(dst)
+        os.replace(tmp, dst)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
