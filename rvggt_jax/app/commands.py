@@ -20,7 +20,7 @@ from rvggt_jax.app.messages import CLIError, one_line
 
 PROG = "rvggt"
 DEFAULT_CONF_THRESHOLD = "50%"
-EXAMPLES_DIR = Path(__file__).resolve().parent / "examples_data"
+EXAMPLES_DIR = Path(__file__).resolve().parents[1] / "examples_data"  # rvggt_jax/examples_data
 DEMO_IMAGES = EXAMPLES_DIR / "images"
 DEMO_WEIGHTS = EXAMPLES_DIR / "tiny"
 FRAMES_DIR = "frames"  # video frames written here (the images the COLMAP model refers to)
