@@ -19,7 +19,7 @@ _LAZY = {
     "rvggt_forward": "rvggt_jax.model.forward",
     "as_query_points": "rvggt_jax.model.forward",
     "InputError": "rvggt_jax.model.forward",
-    "load_pretrained": "rvggt_jax.weights.checkpoint",
+    "load_pretrained": "rvggt_jax.weights.pretrained",
     "load_images": "rvggt_jax.io.images",
     "cost_report": "rvggt_jax.planning.cost",
     "memory_report": "rvggt_jax.planning.memory",

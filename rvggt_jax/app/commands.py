@@ -184,11 +184,11 @@ def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None 
     if not Path(local).exists():
         raise CLIError(f"checkpoint not found: {name}")
     try:
-        from rvggt_jax import load_pretrained
+        from rvggt_jax.weights.checkpoint import load_checkpoint
 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            loaded = load_pretrained(str(local), skip_track=True, progress=not quiet)
+            loaded = load_checkpoint(str(local), skip_track=True, progress=not quiet)
         for w in caught:
             if issubclass(w.category, UserWarning):
                 warn(str(w.message))
