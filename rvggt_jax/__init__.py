@@ -6,12 +6,7 @@
 
 import importlib
 
-from rvggt_jax.ops import xla_cpu
-
-# Before anything can start a JAX backend: multi-threaded CPU convolutions (xla_cpu.py).
-xla_cpu.prefer_threaded_convolutions()
-
-from rvggt_jax.config import VGGTConfig  # noqa: E402
+from rvggt_jax.config import VGGTConfig
 
 # Public names resolved on first use, so importing a submodule (rvggt_jax.model.layers) stays
 # cheap and does not pull in every head.
@@ -26,6 +21,9 @@ _LAZY = {
     "init_params": "rvggt_jax.model.modules",
     "sharded_forward": "rvggt_jax.parallel.sharded",
     "frames_mesh": "rvggt_jax.parallel.sharded",
+    # multi-threaded XLA:CPU convolutions; importing rvggt_jax leaves os.environ alone, the
+    # `rvggt` command calls it (see rvggt_jax.ops.xla_cpu)
+    "prefer_threaded_convolutions": "rvggt_jax.ops.xla_cpu",
 }
 # Submodules reachable as attributes without an explicit import: `rvggt_jax.nn.VGGT` (the
 # Flax modules, `rvggt_jax.model.modules`, under the name they had before the layout).

@@ -186,6 +186,37 @@ def test_no_import_cycle_counting_every_import():
     assert not cycles, "import cycles (module:line of each import):\n  " + "\n  ".join(cycles)
 
 
+ENV_PROBE = """
+import importlib, json, os, sys
+import jax  # sets TF_CPP_MIN_LOG_LEVEL and TPU_SKIP_MDS_QUERY itself: the baseline is taken after it
+before = dict(os.environ)
+import rvggt_jax
+for name in rvggt_jax.__all__:
+    getattr(rvggt_jax, name)
+for name in sys.argv[1:]:
+    importlib.import_module(name)
+after = dict(os.environ)
+print(json.dumps({k: [before.get(k), after.get(k)] for k in sorted(set(before) | set(after))
+                  if before.get(k) != after.get(k)}))
+"""
+
+
+def test_import_leaves_the_environment_alone():
+    """Importing rvggt_jax, every lazy name of it and every module of the package changes
+    no environment variable (XLA_FLAGS included: `prefer_threaded_convolutions` is called
+    by the `rvggt` command, not by an import)."""
+    import json
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["PYTHONPATH"] = str(PACKAGE.parent)
+    r = subprocess.run([sys.executable, "-c", ENV_PROBE, *sorted(_import_graph())], capture_output=True,
+                       text=True, timeout=300, env=env, cwd=PACKAGE.parent)
+    assert r.returncode == 0, r.stderr[-3000:]
+    changed = json.loads(r.stdout.splitlines()[-1])
+    assert changed == {}, f"environment variables changed by importing rvggt_jax (before, after): {changed}"
+
+
 @pytest.mark.parametrize("first, second", [("rvggt_jax.convert", "rvggt_jax.weights.checkpoint"),
                                            ("rvggt_jax.weights.checkpoint", "rvggt_jax.convert")])
 def test_converter_and_loader_import_in_either_order(first, second):

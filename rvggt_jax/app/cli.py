@@ -197,6 +197,9 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rvggt` console script; returns the exit status."""
+    from rvggt_jax.ops.xla_cpu import prefer_threaded_convolutions
+
+    prefer_threaded_convolutions()  # before anything starts JAX: multi-threaded CPU convolutions
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] == "convert":
