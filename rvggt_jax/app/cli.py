@@ -1,7 +1,7 @@
 """`rvggt`: command-line front end (argument parsing, messages, error mapping; the work is
 in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
 
-    rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (see `convert`)
+    rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (`rvggt_jax.app.convert_command`)
     rvggt reconstruct INPUT --weights CKPT --out OUT_DIR [options]
                                           INPUT: a folder of images or a video file;
                                           CKPT: a local checkpoint or a hub repo id

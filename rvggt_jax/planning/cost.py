@@ -6,7 +6,7 @@
 
 It reads the same static plan (`compression.plan.layer_plan`) the compressed block
 executes, so the query and K/V-slot counts here are the shapes the forward pass uses
-(tests/test_compression_cost.py checks this against a traced forward).
+(the cost model's tests check this against a traced forward).
 
 What is counted (FLOPs, a multiply-add = 2, batch 1 unless `batch` is given):
   * linear layers: 2 * rows * in * out (QKV on all N tokens, but K/V on the kept tokens
