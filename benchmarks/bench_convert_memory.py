@@ -148,11 +148,11 @@ def _child(args) -> None:
     elif args.what == "convert":
         params = load_safetensors(args.src, config)
     elif args.what == "load_st":  # load_pretrained(upstream file): convert + device_put leaf by leaf
-        from rvggt_jax.weights.checkpoint import load_pretrained
+        from rvggt_jax.weights.pretrained import load_pretrained
 
         params, _ = load_pretrained(args.src)
     else:  # restore: load_pretrained(Orbax folder written by the CLI)
-        from rvggt_jax.weights.checkpoint import load_pretrained
+        from rvggt_jax.weights.pretrained import load_pretrained
 
         params, _ = load_pretrained(args.dst)
     jax.block_until_ready(params)

@@ -57,6 +57,7 @@ def main(argv=None) -> None:
                     help="small: the widths above; 1b: the full VGGT-1B layout (embed 1024, 16 heads, "
                          "DINO ViT-L, DPT 256), random weights, ~5 GB")
     args = ap.parse_args(argv)
+    rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
 
     import torch
 

@@ -156,6 +156,8 @@ def main(argv=None) -> None:
     for q in (p, r):
         q.add_argument("--out", default=None, help="append the markdown table to this file")
     args = ap.parse_args(argv)
+    if args.mode == "run":  # timed
+        rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
     print(f"jax {jax.__version__}, {jax.devices()[0].device_kind}, {jax.device_count()} device(s)", flush=True)
     rows = plan(args) if args.mode == "plan" else run(args)
     if args.out:

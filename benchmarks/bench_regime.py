@@ -39,6 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import rvggt_jax  # noqa: E402
 from rvggt_jax import compression  # noqa: E402
 
 from rvggt_jax.model import layers
@@ -170,6 +171,7 @@ def main(argv=None) -> None:
     ap.add_argument("--fill", action="store_true", help="also measure the K/V slot fill (one extra compile per preset)")
     ap.add_argument("--out", type=str, default=None, help="append the markdown table to this file")
     args = ap.parse_args(argv)
+    rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
     for name in args.presets:
         if name not in PRESETS:
             raise SystemExit(f"unknown preset {name}; known: {PRESETS}")

@@ -181,6 +181,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default=None, help="append the table to this markdown file")
     args = ap.parse_args()
+    if args.what == "run":  # timed
+        import rvggt_jax
+
+        rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
     if args.what == "plan":
         plan(args.frames, args.devices, args.presets, args.dtypes, args.out)
     elif args.what == "exchange":

@@ -89,6 +89,7 @@ def main(argv=None) -> None:
     ap.add_argument("--vggt-1b-track", action="store_true", help="VGGT-1B track head and DPT widths")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
+    rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
 
     config = bench_config(args)
     t = config.track_head

@@ -28,6 +28,7 @@ def main() -> None:
     ap.add_argument("--size", default="56x84", help="HxW, multiples of 14")
     ap.add_argument("--train", default="all", help="all, heads, or comma-separated path prefixes")
     args = ap.parse_args()
+    rvggt_jax.prefer_threaded_convolutions()  # CPU: multi-threaded convolutions (before anything starts JAX)
 
     h, w = (int(v) for v in args.size.split("x"))
     out = Path(args.out)

@@ -23,6 +23,7 @@ def main() -> None:
     ap.add_argument("--weights", default=str(DATA / "tiny"), help="checkpoint folder or .safetensors")
     ap.add_argument("--preset", default="dense", help="compression preset (dense, regime, ...)")
     args = ap.parse_args()
+    rvggt_jax.prefer_threaded_convolutions()  # CPU: multi-threaded convolutions (before anything starts JAX)
 
     paths = args.images or sorted(str(p) for p in (DATA / "images").iterdir())
     params, config = rvggt_jax.load_pretrained(args.weights)

@@ -6,12 +6,7 @@
 
 import importlib
 
-from rvggt_jax.ops import xla_cpu
-
-# Before anything can start a JAX backend: multi-threaded CPU convolutions (xla_cpu.py).
-xla_cpu.prefer_threaded_convolutions()
-
-from rvggt_jax.config import VGGTConfig  # noqa: E402
+from rvggt_jax.config import VGGTConfig
 
 # Public names resolved on first use, so importing a submodule (rvggt_jax.model.layers) stays
 # cheap and does not pull in every head.
@@ -19,13 +14,16 @@ _LAZY = {
     "rvggt_forward": "rvggt_jax.model.forward",
     "as_query_points": "rvggt_jax.model.forward",
     "InputError": "rvggt_jax.model.forward",
-    "load_pretrained": "rvggt_jax.weights.checkpoint",
+    "load_pretrained": "rvggt_jax.weights.pretrained",
     "load_images": "rvggt_jax.io.images",
     "cost_report": "rvggt_jax.planning.cost",
     "memory_report": "rvggt_jax.planning.memory",
     "init_params": "rvggt_jax.model.modules",
     "sharded_forward": "rvggt_jax.parallel.sharded",
     "frames_mesh": "rvggt_jax.parallel.sharded",
+    # multi-threaded XLA:CPU convolutions; importing rvggt_jax leaves os.environ alone, the
+    # `rvggt` command calls it (see rvggt_jax.ops.xla_cpu)
+    "prefer_threaded_convolutions": "rvggt_jax.ops.xla_cpu",
 }
 # Submodules reachable as attributes without an explicit import: `rvggt_jax.nn.VGGT` (the
 # Flax modules, `rvggt_jax.model.modules`, under the name they had before the layout).

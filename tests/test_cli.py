@@ -192,6 +192,13 @@ def test_convert_then_load(converted):
     assert config.embed_dim == 32 and "aggregator" in params
 
 
+def test_bundled_demo_data_found():
+    from rvggt_jax.app.commands import DEMO_IMAGES as images, DEMO_WEIGHTS as weights
+
+    assert images == DEMO_IMAGES and any(images.glob("*.jpg"))
+    assert (weights / "config.json").is_file()
+
+
 def test_select_frames():
     from rvggt_jax.app.cli import select_frames
 

@@ -26,7 +26,8 @@ from rvggt_jax.weights import (
 )
 from rvggt_jax.convert import main
 from rvggt_jax.weights.rules import apply_rule, converted_shapes, matching_rules
-from rvggt_jax.weights.checkpoint import load_pretrained, save_orbax
+from rvggt_jax.weights.checkpoint import save_orbax
+from rvggt_jax.weights.pretrained import load_pretrained
 from rvggt_jax.config import VGGTConfig
 
 DATA = Path(__file__).parent / "data"

@@ -82,7 +82,7 @@ def test_offline_and_missing_says_what_is_missing(offline_hub):
 
 def test_repo_without_config_json_infers_layout(offline_hub):
     from rvggt_jax.weights.hub import resolve_checkpoint
-    from rvggt_jax.weights.checkpoint import load_pretrained
+    from rvggt_jax.weights.pretrained import load_pretrained
 
     populate_hub_cache(offline_hub, "test/no-config", files=("model.safetensors",))
     path = resolve_checkpoint("test/no-config")

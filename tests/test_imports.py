@@ -1,6 +1,8 @@
-"""The package's import graph: no module-level import cycle, and the converter importable
-from a fresh interpreter in either order with the loaders (the old top-level `convert`
-package and `rvggt_jax.weights.checkpoint` imported each other)."""
+"""The package's import graph: no import cycle, neither among the imports that run at
+import time nor counting every import (inside functions too, and the uses of
+`rvggt_jax`'s lazy names), and the converter importable from a fresh interpreter in
+either order with the loaders (the old top-level `convert` package and
+`rvggt_jax.weights.checkpoint` imported each other)."""
 
 from __future__ import annotations
 
@@ -14,52 +16,102 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "rvggt_jax"
 
 
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+def _module_name(path: Path, package: Path = PACKAGE) -> str:
+    parts = path.relative_to(package.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _module_level_imports(path: Path, name: str, modules: set[str]) -> set[str]:
-    """The package modules `path` imports when it is executed: imports at module level
-    (inside `if`/`try` too), not those inside functions or classes, which run later."""
-    is_package = path.name == "__init__.py"
-    found: set[str] = set()
-
-    def resolve(node: ast.ImportFrom) -> str:
-        if not node.level:
-            return node.module or ""
+def _named_modules(node: ast.Import | ast.ImportFrom, name: str, is_package: bool, modules: set[str]) -> list[str]:
+    """The modules an import statement of module `name` names (`from pkg import sub`
+    names the submodule pkg.sub too)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    if node.level:
         base = name.split(".") if is_package else name.split(".")[:-1]
         base = base[: len(base) - (node.level - 1)]
-        return ".".join(base + ([node.module] if node.module else []))
+        mod = ".".join(base + ([node.module] if node.module else []))
+    else:
+        mod = node.module or ""
+    return [mod] + [f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in modules]
+
+
+def _lazy_names() -> dict[str, str]:
+    """`rvggt_jax`'s lazy public names (its `__getattr__` tables) -> the module that
+    using the name imports."""
+    import rvggt_jax
+
+    return {**rvggt_jax._LAZY, **rvggt_jax._SUBMODULES}
+
+
+def _lazy_uses(tree: ast.AST, lazy: dict[str, str], package: str = "rvggt_jax") -> dict[str, int]:
+    """{module: line} of the uses of `package`'s lazy names in `tree`, anywhere:
+    `from rvggt_jax import NAME` and `rvggt_jax.NAME`. The package's table itself is no
+    edge of `rvggt_jax` (it maps names and imports on demand); a use imports the module
+    behind the name, so it is an edge of the module that uses it."""
+    found: dict[str, int] = {}
+    for node in ast.walk(tree):
+        names = []
+        if isinstance(node, ast.ImportFrom) and node.module == package and not node.level:
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == package:
+            names = [node.attr]
+        for n in names:
+            if n in lazy:
+                found.setdefault(lazy[n], node.lineno)
+    return found
+
+
+def _imports(path: Path, name: str, modules: set[str], *, everywhere: bool = False,
+             lazy: dict[str, str] | None = None) -> dict[str, int]:
+    """{package module: line of its first import} of the modules `path` imports.
+
+    everywhere=False: those imported when it is executed, imports at module level (inside
+    `if`/`try` too), not those inside functions or classes, which run later.
+    everywhere=True: every import statement, in functions and classes too, and every use
+    of a lazy name of `lazy` (`_lazy_uses`)."""
+    is_package = path.name == "__init__.py"
+    tree = ast.parse(path.read_text())
+    found: dict[str, int] = {}
 
     def visit(stmts: list[ast.stmt]) -> None:
         for node in stmts:
-            if isinstance(node, ast.Import):
-                found.update(a.name for a in node.names)
-            elif isinstance(node, ast.ImportFrom):
-                mod = resolve(node)
-                found.add(mod)
-                # `from pkg import sub` imports the submodule pkg.sub
-                found.update(f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in modules)
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for m in _named_modules(node, name, is_package, modules):
+                    found.setdefault(m, node.lineno)
             elif isinstance(node, (ast.If, ast.Try)):
                 for field in ("body", "orelse", "finalbody"):
                     visit(getattr(node, field, []))
                 for handler in getattr(node, "handlers", []):
                     visit(handler.body)
 
-    visit(ast.parse(path.read_text()).body)
+    if everywhere:
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for m in _named_modules(node, name, is_package, modules):
+                    found[m] = min(found.get(m, node.lineno), node.lineno)
+        for m, line in _lazy_uses(tree, lazy or {}, name.split(".")[0]).items():
+            found.setdefault(m, line)
+    else:
+        visit(tree.body)
     # importing a.b.c runs a/b/__init__.py first
-    found |= {".".join(m.split(".")[:i]) for m in found for i in range(1, m.count(".") + 1)}
+    for m, line in list(found.items()):
+        for i in range(1, m.count(".") + 1):
+            parent = ".".join(m.split(".")[:i])
+            found[parent] = min(found.get(parent, line), line)
     # A module's own parent packages are being imported already when it runs (Python
     # imports `a` and `a.b` before `a.b.c`): `from a.b import sibling` is not a cycle.
     ancestors = {".".join(name.split(".")[:i]) for i in range(1, name.count(".") + 1)}
-    return {m for m in found if m in modules and m != name and m not in ancestors}
+    return {m: line for m, line in found.items() if m in modules and m != name and m not in ancestors}
 
 
-def _import_graph() -> dict[str, set[str]]:
-    files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+def _import_graph(*, everywhere: bool = False, package: Path = PACKAGE,
+                  lazy: dict[str, str] | None = None) -> dict[str, dict[str, int]]:
+    """{module: {module it imports: line}} over `package` (see `_imports`)."""
+    files = {_module_name(p, package): p for p in package.rglob("*.py")}
     modules = set(files)
-    return {name: _module_level_imports(path, name, modules) for name, path in files.items()}
+    if everywhere and lazy is None and package == PACKAGE:
+        lazy = _lazy_names()
+    return {name: _imports(path, name, modules, everywhere=everywhere, lazy=lazy) for name, path in files.items()}
 
 
 def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -99,6 +151,70 @@ def test_graph_sees_the_converter_imports():
 def test_no_module_level_import_cycle():
     cycle = _find_cycle(_import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def _cycles(graph: dict[str, dict[str, int]]) -> list[str]:
+    """Every cycle `_find_cycle` meets, one a line, `a:LINE -> b:LINE -> ... -> a` (LINE:
+    where that module imports the next): one is found, its last edge dropped, again."""
+    graph = {a: dict(b) for a, b in graph.items()}
+    found = []
+    while (cycle := _find_cycle(graph)) is not None:
+        found.append(" -> ".join(f"{a}:{graph[a][b]}" for a, b in zip(cycle, cycle[1:])) + f" -> {cycle[-1]}")
+        del graph[cycle[-2]][cycle[-1]]
+    return found
+
+
+def test_all_imports_graph_sees_imports_in_functions_and_lazy_names(tmp_path):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def f():\n    from pkg.b import g\n    return g\n")
+    (pkg / "b.py").write_text("import pkg\n\n\ndef g():\n    return pkg.lazy_a\n")
+    assert _import_graph(package=pkg) == {"pkg": {}, "pkg.a": {}, "pkg.b": {}}
+    graph = _import_graph(everywhere=True, package=pkg, lazy={"lazy_a": "pkg.a"})
+    assert graph["pkg.a"] == {"pkg.b": 2} and graph["pkg.b"] == {"pkg.a": 5}
+    assert _cycles(graph) == ["pkg.a:2 -> pkg.b:5 -> pkg.a"]
+    full = _import_graph(everywhere=True)
+    assert "rvggt_jax.weights.checkpoint" in full["rvggt_jax.weights.hub"]  # inside _convert_to
+    assert "rvggt_jax.weights.pretrained" in full["rvggt_jax.train.loop"]  # rvggt_jax.load_pretrained(...)
+
+
+def test_no_import_cycle_counting_every_import():
+    """Imports inside functions too: a cycle there still ties the modules together (and
+    breaks when one of them is imported first from the other's function)."""
+    cycles = _cycles(_import_graph(everywhere=True))
+    assert not cycles, "import cycles (module:line of each import):\n  " + "\n  ".join(cycles)
+
+
+ENV_PROBE = """
+import importlib, json, os, sys
+import jax  # sets TF_CPP_MIN_LOG_LEVEL and TPU_SKIP_MDS_QUERY itself: the baseline is taken after it
+before = dict(os.environ)
+import rvggt_jax
+for name in rvggt_jax.__all__:
+    getattr(rvggt_jax, name)
+for name in sys.argv[1:]:
+    importlib.import_module(name)
+after = dict(os.environ)
+print(json.dumps({k: [before.get(k), after.get(k)] for k in sorted(set(before) | set(after))
+                  if before.get(k) != after.get(k)}))
+"""
+
+
+def test_import_leaves_the_environment_alone():
+    """Importing rvggt_jax, every lazy name of it and every module of the package changes
+    no environment variable (XLA_FLAGS included: `prefer_threaded_convolutions` is called
+    by the `rvggt` command, not by an import)."""
+    import json
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["PYTHONPATH"] = str(PACKAGE.parent)
+    r = subprocess.run([sys.executable, "-c", ENV_PROBE, *sorted(_import_graph())], capture_output=True,
+                       text=True, timeout=300, env=env, cwd=PACKAGE.parent)
+    assert r.returncode == 0, r.stderr[-3000:]
+    changed = json.loads(r.stdout.splitlines()[-1])
+    assert changed == {}, f"environment variables changed by importing rvggt_jax (before, after): {changed}"
 
 
 @pytest.mark.parametrize("first, second", [("rvggt_jax.convert", "rvggt_jax.weights.checkpoint"),

@@ -59,10 +59,10 @@ def ckpt(tmp_path_factory):
 
 
 def reconstruct(*args, **kw):
-    from rvggt_jax.app.commands import reconstruct_folder as r
+    from rvggt_jax.app.commands import ReconstructOptions, reconstruct_folder as r
 
     kw.setdefault("quiet", True)
-    return r(*args, **kw)
+    return r(*args, ReconstructOptions(**kw))
 
 
 # ---- video ---------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """`rvggt`: command-line front end (argument parsing, messages, error mapping; the work is
 in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
 
-    rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (see `convert`)
+    rvggt convert SRC DST [...]           upstream .safetensors -> Orbax (`rvggt_jax.app.convert_command`)
     rvggt reconstruct INPUT --weights CKPT --out OUT_DIR [options]
                                           INPUT: a folder of images or a video file;
                                           CKPT: a local checkpoint or a hub repo id
@@ -38,6 +38,7 @@ from rvggt_jax.app.commands import (  # noqa: F401 - re-exported: the API of `rv
     EXAMPLES_DIR,
     PROG,
     RANDOM_WEIGHTS_NOTICE,
+    ReconstructOptions,
     demo,
     enable_compilation_cache,
     known_presets,
@@ -46,6 +47,9 @@ from rvggt_jax.app.commands import (  # noqa: F401 - re-exported: the API of `rv
     warn,
 )
 
+
+
+_DEFAULTS = ReconstructOptions()
 
 
 class _Parser(argparse.ArgumentParser):
@@ -98,50 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("args", nargs=argparse.REMAINDER, help="SRC DST [converter options]; see `rvggt convert --help`")
 
     presets = ", ".join(known_presets())
-    p = sub.add_parser("reconstruct", help="reconstruct a folder of images or a video",
-                       description="Reconstruct cameras, depth and a point cloud from the images of a folder "
-                                   "(sorted by name; other files are skipped) or the frames of a video.")
-    p.add_argument("images_dir", metavar="INPUT",
-                   help="folder of images (png, jpg, ...) or a video file (mp4, mov, mkv, webm, ...)")
-    p.add_argument("--weights", required=True, metavar="CKPT",
-                   help="checkpoint: a Hugging Face repo id (facebook/VGGT-1B: downloaded into the hub cache and "
-                        "converted once under ~/.cache/rvggt-jax), a folder with model.safetensors "
-                        "[+ config.json], a .safetensors file, or a converted (Orbax) folder")
-    p.add_argument("--out", required=True, metavar="OUT_DIR",
-                   help="output folder (created; must be empty unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="reuse a non-empty output folder: delete the files the previous rvggt run there wrote "
-                        "(listed in its .rvggt-manifest.json) and nothing else")
-    _common_options(p, presets)
-    p.add_argument("--mode", default="crop", choices=("crop", "pad"),
-                   help="crop: width 518, height centre-cropped to <= 518 (default); "
-                        "pad: longest side 518, white-padded to square")
-    p.add_argument("--conf-threshold", default=DEFAULT_CONF_THRESHOLD, metavar="X",
-                   help="keep points whose confidence is >= X (VGGT confidences are >= 1), or, written "
-                        "'P%%', at or above the P-th percentile of all confidences (default %(default)s; "
-                        "'0%%' keeps every point)")
-    p.add_argument("--max-frames", type=int, default=None, metavar="N",
-                   help="use at most N images (or video frames), evenly spaced")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--every", type=int, default=None, metavar="N",
-                   help="video: keep every N-th frame")
-    g.add_argument("--fps", type=_positive_float, default=None, metavar="F",
-                   help="video: keep F frames per second (default for a video: 1)")
-    p.add_argument("--skip-bad", action="store_true",
-                   help="leave out images that cannot be read, with a warning naming each (default: stop)")
-    p.add_argument("--ignore-exif", action="store_true",
-                   help="read images as stored, ignoring their EXIF orientation (upstream's behaviour)")
-    p.add_argument("--points", default="depth", choices=("depth", "pointmap"),
-                   help="point cloud from the depth maps unprojected with the predicted cameras "
-                        "(default) or from the point-map head")
-    p.add_argument("--max-points", type=int, default=2_000_000, metavar="N",
-                   help="cap on the points written to points.ply (random subset; default %(default)s)")
-    p.add_argument("--all-colmap-points", action="store_true",
-                   help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
-                        "at most 100000)")
-    p.add_argument("--devices", type=int, default=None, metavar="N",
-                   help="split the frames over N local devices, one forward pass (default: all of them when "
-                        "there are several)")
+    _add_reconstruct_parser(sub, presets)
 
     p = sub.add_parser("view", help="interactive 3D viewer of a reconstruction (in the browser, localhost)",
                        description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
@@ -164,17 +125,81 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_reconstruct_parser(sub, presets: str) -> None:
+    """`rvggt reconstruct`: its defaults are `ReconstructOptions`'."""
+    p = sub.add_parser("reconstruct", help="reconstruct a folder of images or a video",
+                       description="Reconstruct cameras, depth and a point cloud from the images of a folder "
+                                   "(sorted by name; other files are skipped) or the frames of a video.")
+    p.add_argument("images_dir", metavar="INPUT",
+                   help="folder of images (png, jpg, ...) or a video file (mp4, mov, mkv, webm, ...)")
+    p.add_argument("--weights", required=True, metavar="CKPT",
+                   help="checkpoint: a Hugging Face repo id (facebook/VGGT-1B: downloaded into the hub cache and "
+                        "converted once under ~/.cache/rvggt-jax), a folder with model.safetensors "
+                        "[+ config.json], a .safetensors file, or a converted (Orbax) folder")
+    p.add_argument("--out", required=True, metavar="OUT_DIR",
+                   help="output folder (created; must be empty unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="reuse a non-empty output folder: delete the files the previous rvggt run there wrote "
+                        "(listed in its .rvggt-manifest.json) and nothing else")
+    _common_options(p, presets)
+    p.add_argument("--mode", default=_DEFAULTS.mode, choices=("crop", "pad"),
+                   help="crop: width 518, height centre-cropped to <= 518 (default); "
+                        "pad: longest side 518, white-padded to square")
+    p.add_argument("--conf-threshold", default=_DEFAULTS.conf_threshold, metavar="X",
+                   help="keep points whose confidence is >= X (VGGT confidences are >= 1), or, written "
+                        "'P%%', at or above the P-th percentile of all confidences (default %(default)s; "
+                        "'0%%' keeps every point)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="use at most N images (or video frames), evenly spaced")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--every", type=int, default=None, metavar="N",
+                   help="video: keep every N-th frame")
+    g.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+                   help="video: keep F frames per second (default for a video: 1)")
+    p.add_argument("--skip-bad", action="store_true",
+                   help="leave out images that cannot be read, with a warning naming each (default: stop)")
+    p.add_argument("--ignore-exif", action="store_true",
+                   help="read images as stored, ignoring their EXIF orientation (upstream's behaviour)")
+    p.add_argument("--points", default=_DEFAULTS.points_from, choices=("depth", "pointmap"),
+                   help="point cloud from the depth maps unprojected with the predicted cameras "
+                        "(default) or from the point-map head")
+    p.add_argument("--max-points", type=int, default=_DEFAULTS.max_points, metavar="N",
+                   help="cap on the points written to points.ply (random subset; default %(default)s)")
+    p.add_argument("--all-colmap-points", action="store_true",
+                   help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
+                        "at most 100000)")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="split the frames over N local devices, one forward pass (default: all of them when "
+                        "there are several)")
+
+
 def _common_options(p: argparse.ArgumentParser, presets: str) -> None:
     p.add_argument("--preset", default=None, metavar="NAME",
                    help=f"compression preset of the global attention ({presets}); default: the checkpoint's")
-    p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"),
+    p.add_argument("--dtype", default=_DEFAULTS.dtype, choices=("float32", "bfloat16"),
                    help="compute dtype of the aggregator (bfloat16: upstream's mixed precision, about half "
                         "the memory; the heads stay float32; default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or messages (errors and warnings only)")
 
 
+def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
+    """The `ReconstructOptions` of a parsed `rvggt reconstruct` or `rvggt demo` (which has
+    only --preset, --dtype, --overwrite and --quiet: the others keep their defaults)."""
+    common = dict(preset=args.preset, dtype=args.dtype, overwrite=args.overwrite, quiet=args.quiet)
+    if args.command == "demo":
+        return ReconstructOptions(**common)
+    return ReconstructOptions(
+        **common, mode=args.mode, max_frames=args.max_frames, every=args.every, fps=args.fps,
+        skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, devices=args.devices,
+        conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
+        all_colmap_points=args.all_colmap_points)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rvggt` console script; returns the exit status."""
+    from rvggt_jax.ops.xla_cpu import prefer_threaded_convolutions
+
+    prefer_threaded_convolutions()  # before anything starts JAX: multi-threaded CPU convolutions
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] == "convert":
@@ -184,19 +209,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             build_parser().print_help()
             return 2
         if args.command == "reconstruct":
-            reconstruct_folder(args.images_dir, args.weights, args.out, preset=args.preset, mode=args.mode,
-                               conf_threshold=args.conf_threshold, max_frames=args.max_frames,
-                               points_from=args.points, max_points=args.max_points, quiet=args.quiet,
-                               overwrite=args.overwrite, dtype=args.dtype, devices=args.devices,
-                               every=args.every, fps=args.fps,
-                               skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif,
-                               all_colmap_points=args.all_colmap_points)
+            reconstruct_folder(args.images_dir, args.weights, args.out, reconstruct_options(args))
         elif args.command == "view":
             from rvggt_jax.app.viewer import serve
 
             serve(args.out_dir, port=args.port, host=args.host)
         elif args.command == "demo":
-            demo(args.out, preset=args.preset, quiet=args.quiet, overwrite=args.overwrite, dtype=args.dtype)
+            demo(args.out, reconstruct_options(args))
         elif args.command == "eval":
             from rvggt_jax.app.eval_command import run_eval_command
 

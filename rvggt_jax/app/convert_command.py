@@ -2,7 +2,7 @@
 
 Converts an upstream VGGT checkpoint (a `.safetensors` file, or a folder holding
 `model.safetensors`) to an Orbax checkpoint folder `DST` (`DST/params/` + `DST/config.json`)
-readable by `rvggt_jax.weights.checkpoint.load_pretrained`.
+readable by `rvggt_jax.load_pretrained` (`rvggt_jax.weights.pretrained`).
 
 Errors are `PROG: error: <one line>` on stderr, details (e.g. every mismatched tensor)
 indented under it; PROG is `rvggt` when run as `rvggt convert`.

@@ -85,7 +85,7 @@ def _fail(msg: str):
 
 
 def run_eval_command(args: argparse.Namespace) -> list[dict]:
-    """Execute a parsed `rvggt eval`; raises `rvggt_jax.app.cli.CLIError` on bad input."""
+    """Execute a parsed `rvggt eval`; raises `rvggt_jax.app.messages.CLIError` on bad input."""
     from rvggt_jax.app.messages import one_line as _one_line
     from rvggt_jax.app.commands import DEMO_WEIGHTS, enable_compilation_cache, known_presets
     from rvggt_jax.eval.datasets import DatasetError

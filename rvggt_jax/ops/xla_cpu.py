@@ -6,8 +6,10 @@ busy on a 2-core machine; the same conv through XLA's Eigen path runs 2x faster 
 cores, and the whole forward ~10% faster). Matmuls keep YNNPACK, which is multi-threaded
 and fast.
 
-XLA reads its flags once, when the first JAX backend starts, so `import rvggt_jax`
-appends the flag to `XLA_FLAGS` then, and only when all of these hold:
+XLA reads its flags once, when the first JAX backend starts (the first computation, or
+`jax.devices()`; `import jax` does not), so the flag must be in `XLA_FLAGS` before that.
+`prefer_threaded_convolutions()` (also `rvggt_jax.prefer_threaded_convolutions`) appends
+it, and only when all of these hold:
   - no JAX backend has started yet (otherwise it could not take effect);
   - `XLA_FLAGS` does not already set `--xla_cpu_experimental_ynn_fusion_type` (yours wins);
   - `RVGGT_XLA_CPU_CONV` is not `ynn` (the opt-out);
@@ -15,6 +17,14 @@ appends the flag to `XLA_FLAGS` then, and only when all of these hold:
     aborts the process, so other versions are left alone).
 It changes only which CPU kernel runs a convolution, not what it computes (f32 either
 way). `applied()` says whether it took effect in this process.
+
+`import rvggt_jax` does not call it: importing the library leaves `os.environ` as it was.
+The `rvggt` command calls it first thing (`rvggt_jax.app.cli.main`), and so do the
+benchmarks that time CPU runs. A program of yours gets the same speed by calling it
+before anything starts JAX:
+
+    import rvggt_jax
+    rvggt_jax.prefer_threaded_convolutions()   # then load weights, run the model, ...
 """
 
 from __future__ import annotations
@@ -47,8 +57,10 @@ def _backends_started() -> bool:
 
 
 def prefer_threaded_convolutions() -> bool:
-    """Append FLAG to XLA_FLAGS when it is safe and useful (see the module doc).
-    Returns whether it was appended by this call."""
+    """Append FLAG to XLA_FLAGS when it is safe and useful (see the module doc): call it
+    before anything starts a JAX backend. Returns whether it was appended by this call
+    (False when a backend already runs, the flag is set already, `RVGGT_XLA_CPU_CONV=ynn`
+    or the jaxlib version is not a verified one)."""
     global _applied
     flags = os.environ.get("XLA_FLAGS", "")
     if (FLAG_NAME in flags or os.environ.get(OPT_OUT_ENV, "").lower() == "ynn"

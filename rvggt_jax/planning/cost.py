@@ -6,7 +6,7 @@
 
 It reads the same static plan (`compression.plan.layer_plan`) the compressed block
 executes, so the query and K/V-slot counts here are the shapes the forward pass uses
-(tests/test_compression_cost.py checks this against a traced forward).
+(the cost model's tests check this against a traced forward).
 
 What is counted (FLOPs, a multiply-add = 2, batch 1 unless `batch` is given):
   * linear layers: 2 * rows * in * out (QKV on all N tokens, but K/V on the kept tokens
@@ -132,19 +132,3 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
         predicted_speedup_with_patch_embed=(glob_dense + frames_total + pe) / (glob + frames_total + pe),
         kv_fill_expected=(sum(r["kv_filled_expected"] for r in rows) / max(1, sum(r["kv_slots"] for r in rows))),
     )
-
-
-def format_report(report: dict[str, Any]) -> str:
-    """A plain-text table of a cost report."""
-    lines = [f"preset {report['preset']}  S={report['frames']} grid={report['grid']} N={report['tokens']}",
-             "layer kind    tile    queries  kv_slots (fixed+dyn+dup)  fill~  attn GF  match GF  ratio"]
-    for r in report["layers"]:
-        fill = r["kv_filled_expected"] / max(1, r["kv_slots"])
-        lines.append(
-            f"{r['layer']:5d} {r['kind']:7s} {str(r['tile']):7s} {r['queries']:8d} {r['kv_slots']:9d} "
-            f"({r['kv_fixed']}+{r['kv_dynamic']}+{r['kv_duplicates']})  {fill:5.2f}  "
-            f"{r['attention_flops'] / 1e9:7.2f}  {r['match_flops'] / 1e9:8.2f}  {r['attention_ratio']:.3f}")
-    lines.append(f"global attention ratio {report['global_attention_ratio']:.3f}; predicted speedup "
-                 f"{report['predicted_speedup']:.2f}x (aggregator), "
-                 f"{report['predicted_speedup_with_patch_embed']:.2f}x (with patch embed)")
-    return "\n".join(lines)

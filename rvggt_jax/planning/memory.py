@@ -109,7 +109,7 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
 
 def _sharded_plan(params, images, config, queries, mesh):
     """`sharded_forward` over `mesh` compiled for abstract inputs placed as
-    `sharded.input_shardings` places them; the compiled program takes (params, images,
+    `rvggt_jax.parallel.sharded.input_shardings` places them; the compiled program takes (params, images,
     config[, query_points])."""
     import functools
 

@@ -2,9 +2,14 @@
 
 - `upstream_state_dict_shapes(config)`: every upstream key and its shape.
 - `RULES` / `find_rule` / `apply_rule`: the explicit key -> pytree-path conversion table.
-- `CheckpointError`, `CheckpointFileError` (`errors.py`, shared with `rvggt_jax.weights.checkpoint`).
+- `CheckpointError`, `CheckpointFileError` (`rvggt_jax.weights.errors`, shared with `rvggt_jax.weights.checkpoint`).
 - `convert_state_dict`, `load_safetensors`: convert (with one `CheckpointError` for all
   problems); `expected_param_shapes(config)`: our converted tree of `ShapeDtypeStruct`s.
+
+Loading, in submodules not imported here: `rvggt_jax.weights.pretrained.load_pretrained`
+(a hub repo id or a local path; `rvggt_jax.load_pretrained`), which uses
+`rvggt_jax.weights.hub` (repo ids: download, convert once) and
+`rvggt_jax.weights.checkpoint` (local checkpoints, Orbax save/load).
 """
 
 from rvggt_jax.weights.converter import (

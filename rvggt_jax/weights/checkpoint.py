@@ -1,16 +1,18 @@
-"""Loading and saving VGGT parameters.
+"""Loading and saving VGGT parameters, local checkpoints only (a Hugging Face repo id is
+resolved to one by `rvggt_jax.weights.hub`; `rvggt_jax.weights.pretrained.load_pretrained`
+takes either).
 
-- `load_pretrained(path)` -> `(params, config)` from an upstream `model.safetensors`
+- `load_checkpoint(path)` -> `(params, config)` from an upstream `model.safetensors`
   (a folder holding one, or the file itself; a `config.json` beside it is read, else
-  the layout is inferred from the tensor shapes, see `config_for_safetensors`), from an
-  Orbax checkpoint folder written by `save_orbax`, or from a Hugging Face repo id
-  (`facebook/VGGT-1B`: downloaded and converted once, see `rvggt_jax.weights.hub`).
+  the layout is inferred from the tensor shapes, see `config_for_safetensors`) or from an
+  Orbax checkpoint folder written by `save_orbax`.
 - `save_orbax(params, config, dst_dir)` writes `dst_dir/params/` (Orbax) and
   `dst_dir/config.json`.
 
-The converter itself is `rvggt_jax.convert` (imported lazily here, as is Orbax, so
-importing this module stays cheap); its error classes live in `rvggt_jax.weights.errors`,
-which imports nothing of this package, so there is no import cycle.
+The converter itself is `rvggt_jax.weights.converter` (imported lazily here, as is Orbax,
+so importing this module stays cheap); its error classes live in
+`rvggt_jax.weights.errors`, which imports nothing of this package. This module imports
+neither `hub` nor `pretrained` (they import it): no import cycle.
 """
 
 from __future__ import annotations
@@ -210,7 +212,7 @@ def cast_params(params: Mapping[str, Any], param_dtype: Any) -> dict:
     return {**params, "aggregator": jax.tree.map(cast, params["aggregator"])}
 
 
-def load_pretrained(
+def load_checkpoint(
     path: str | Path,
     *,
     skip_track: bool = False,
@@ -218,17 +220,15 @@ def load_pretrained(
     progress: bool = False,
     param_dtype: Any = "float32",
 ) -> tuple[dict, VGGTConfig]:
-    """Load VGGT parameters -> `(params, config)`.
+    """Load VGGT parameters from a local checkpoint -> `(params, config)`.
 
     `path` is one of:
-      - a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
-        path): downloaded into the hub cache and converted once to an Orbax copy under
-        `~/.cache/rvggt-jax/weights` (`rvggt_jax.weights.hub`; offline the caches are used);
       - a folder with `model.safetensors` (+ optional `config.json`, else the layout
         is inferred from the shapes, `config_for_safetensors`);
       - a `.safetensors` file (a `config.json` beside it is used if present);
       - an Orbax folder written by `save_orbax` (`params/` + `config.json`), or its
         `params/` subfolder.
+    (`rvggt_jax.weights.pretrained.load_pretrained` also takes a Hugging Face repo id.)
     Upstream checkpoints are converted on the fly (checked first, one `CheckpointError`
     for every problem). `skip_track=True` drops the track head (and returns a config with
     `enable_track=False`). Leaves are float32 `jax.Array`s on the default device, or numpy
@@ -236,10 +236,6 @@ def load_pretrained(
     weights in bfloat16 (half their memory; `cast_params`), for
     `config.with_dtype("bfloat16")`.
     """
-    from rvggt_jax.weights.hub import is_repo_id, resolve_checkpoint
-
-    if is_repo_id(path):
-        path = resolve_checkpoint(path, progress=progress)
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"checkpoint path does not exist: {p}")

@@ -15,18 +15,11 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+# Defined in a leaf module (the PLY reader raises them too: no import cycle); every reader
+# imports them from here.
+from rvggt_jax.eval.datasets.errors import DatasetError, need_file
+
 __all__ = ["DatasetError", "SAMPLING", "Scene", "need_file", "sample_indices"]
-
-
-class DatasetError(ValueError):
-    """A dataset folder is missing something or is malformed; the message names the file."""
-
-
-def need_file(path: Path, what: str) -> Path:
-    """`path` if it is a file, else a DatasetError naming it and what it should hold."""
-    if not path.is_file():
-        raise DatasetError(f"missing {what}: {path}")
-    return path
 
 
 @dataclasses.dataclass

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rvggt_jax.eval.datasets.base import DatasetError
+from rvggt_jax.eval.datasets.errors import DatasetError
 
 __all__ = ["read_ply_points"]
 
