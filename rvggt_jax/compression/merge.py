@@ -303,8 +303,8 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
     if rows >= n:
         sums = add(sums, group, *map(chunks.whole, inputs))
     elif owned:
-        x0, sums = chunks.fold_tokens_through(lambda acc, xc, g, *c: add(acc, g, xc, *c), x0, sums, (group, *inputs[1:]),
-                                     n, rows)
+        x0, sums = chunks.fold_tokens_through(lambda acc, xc, g, *c: add(acc, g, xc, *c), x0, sums,
+                                              (group, *inputs[1:]), n, rows)
     else:
         sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)

@@ -39,13 +39,20 @@ def special_tokens(token: jax.Array, b: int, frame_ids: jax.Array) -> jax.Array:
 def aggregator_forward(
     p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int],
     shards: FrameShards | None = None,
-) -> tuple[dict[int, jax.Array], jax.Array, jax.Array]:
+) -> tuple[dict[int, KeptLayer], jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] ->
     (outputs {layer: `KeptLayer` (tokens [B, S, P, 2C])} for the layers in `keep_layers`,
      patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w]).
 
     Each output concatenates the frame-block and global-block outputs of that layer; the
-    other layers' outputs are never materialised beyond their use.
+    other layers' outputs are never materialised beyond their use. The 2 x depth blocks
+    run as one `lax.scan` per run of layers sharing a static global plan (`layer_groups`:
+    one run for dense, ~7 for `regime`): one compiled body per run, and every temporary
+    of a layer confined to its loop body. The kept layers' frame and global halves go to
+    two [K, B, S, P, C] buffers in the compute dtype (`kept.py`); a kept last layer's
+    global half is the final residual stream (its `KeptLayer` reads x), so the global
+    buffer has one slot less and the layers after the last-but-one kept layer, a scan of
+    their own, write no global half.
 
     With `shards` (frames split over devices, inside `jax.shard_map`): S is this device's
     frames, every output holds them; the global blocks attend across all devices."""
@@ -53,11 +60,48 @@ def aggregator_forward(
     shards = FrameShards.single(s) if shards is None else shards
     if s != shards.local:
         raise ValueError(f"{s} frames on this device but the shards say {shards.local}")
-    ps = config.patch_size
-    h, w = hh // ps, ww // ps
-    c = config.embed_dim
-    keep = set(keep_layers)
+    keep = sorted(set(keep_layers))
+    tokens, patch_tokens, saliency = input_tokens(p, images, config, shards)
+    num_tokens, c = tokens.shape[1:]
+    geom = compression.Geometry(shards.frames, hh // config.patch_size, ww // config.patch_size,
+                                config.patch_start_idx)
+    dtype = config.compute_dtype
+    pos = rope_tables(geom, config, s)
+    slot, spare = kept_slots(config.depth, keep)
+    state = None
+    if not config.compression.is_dense:
+        # (the state is sequence-wide: every device holds all of it, built from every
+        # frame's saliency, a few floats per patch)
+        state = compression.init_state(config.compression, shards.gather(saliency, 1), geom, shards)
 
+    x = tokens.reshape(b, s * num_tokens, c)
+    # (the buffers made from the saliency, after the patch embed; two distinct values,
+    # one buffer each: docs/memory_layout.md)
+    shape = (len(keep) + spare, b, s, num_tokens, c)
+    kept_frame = kept_buffer(shape, dtype, saliency)
+    last_is_x = bool(keep) and keep[-1] == config.depth - 1
+    writes_global = (keep[-2] if len(keep) > 1 else -1) if last_is_x else config.depth - 1  # up to this layer
+    n_global = shape[0] - int(last_is_x)
+    kept_global = kept_buffer((n_global,) + shape[1:], dtype, jax.tree.leaves(kept_frame)[0]) if n_global else None
+    groups = [g for run in layer_groups(config, geom)
+              for g in (tuple(i for i in run if i <= writes_global), tuple(i for i in run if i > writes_global)) if g]
+    carry = (x, kept_frame, kept_global)
+    for group in groups:
+        carry, state = _scan_layers(p, carry, group, slot, pos, geom, config, shards, state,
+                                    store=group[0] <= writes_global)
+    x, kept_frame, kept_global = carry
+    out = {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
+    if last_is_x:
+        out[keep[-1]] = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), len(keep) - 1, 0, dtype)
+    return out, patch_tokens, saliency
+
+
+def input_tokens(p: Params, images: jax.Array, config: VGGTConfig, shards: FrameShards
+                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The aggregator's input: (tokens [B*S, P, C] = camera, registers and DINO patch
+    tokens of every frame, patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w])."""
+    b, s, _, hh, ww = images.shape
+    ps = config.patch_size
     dino, num_prefix, saliency = patch_embed_tokens(p["patch_embed"], images, config)
     patch_tokens = dino[:, num_prefix:]
     frame_ids = shards.frame_ids()
@@ -69,11 +113,8 @@ def aggregator_forward(
         tokens = jax.lax.dynamic_update_slice_in_dim(dino, special, 0, axis=1)
     else:
         tokens = jnp.concatenate([special, patch_tokens], axis=1)
-    chex.assert_shape(tokens, (b * s, config.patch_start_idx + h * w, c))
-
-    geom = compression.Geometry(shards.frames, h, w, config.patch_start_idx)
-    outputs = _layers(p, tokens, saliency, geom, config, shards, sorted(keep))
-    return outputs, patch_tokens, saliency
+    chex.assert_shape(tokens, (b * s, config.patch_start_idx + (hh // ps) * (ww // ps), config.embed_dim))
+    return tokens, patch_tokens, saliency
 
 
 def layer_groups(config: VGGTConfig, geom: compression.Geometry) -> tuple[tuple[int, ...], ...]:
@@ -110,51 +151,6 @@ def rope_tables(geom: compression.Geometry, config: VGGTConfig, frames: int
         jnp.asarray(layers.patch_positions(geom.h, geom.w, geom.num_special))[None], config.head_dim,
         config.rope_freq)
     return frame_pos, layers.RopeTables.of_sequence(frame_pos, frames)
-
-
-def _layers(p: Params, tokens: jax.Array, saliency: jax.Array, geom: compression.Geometry, config: VGGTConfig,
-            shards: FrameShards, keep: list[int]) -> dict[int, KeptLayer]:
-    """The 2 x depth blocks over tokens [B*S, P, C] (this device's S frames of the
-    sequence `geom`) as one `lax.scan` per run of layers sharing a static global plan
-    (`layer_groups`: one run for dense, ~7 for `regime`): one compiled body per run, and
-    every temporary of a layer confined to its loop body.
-
-    The kept layers' frame and global halves go to two [K, B, S, P, C] buffers in the
-    compute dtype (`kept.py`). A kept last layer's global half is the final residual
-    stream (its `KeptLayer` reads x), so the global buffer has one slot less and the
-    layers after the last-but-one kept layer, a scan of their own, write no global half."""
-    n, num_tokens, c = tokens.shape
-    s = shards.local  # frames here (geom.frames: in the sequence)
-    b = n // s
-    dtype = config.compute_dtype
-    pos = rope_tables(geom, config, s)
-    slot, spare = kept_slots(config.depth, keep)
-    state = None
-    if not config.compression.is_dense:
-        # (the state is sequence-wide: every device holds all of it, built from every
-        # frame's saliency, a few floats per patch)
-        state = compression.init_state(config.compression, shards.gather(saliency, 1), geom, shards)
-
-    x = tokens.reshape(b, s * num_tokens, c)
-    # (the buffers made from the saliency, after the patch embed; two distinct values,
-    # one buffer each: docs/memory_layout.md)
-    shape = (len(keep) + spare, b, s, num_tokens, c)
-    kept_frame = kept_buffer(shape, dtype, saliency)
-    last_is_x = bool(keep) and keep[-1] == config.depth - 1
-    writes_global = (keep[-2] if len(keep) > 1 else -1) if last_is_x else config.depth - 1  # up to this layer
-    n_global = shape[0] - int(last_is_x)
-    kept_global = kept_buffer((n_global,) + shape[1:], dtype, jax.tree.leaves(kept_frame)[0]) if n_global else None
-    groups = [g for run in layer_groups(config, geom)
-              for g in (tuple(i for i in run if i <= writes_global), tuple(i for i in run if i > writes_global)) if g]
-    carry = (x, kept_frame, kept_global)
-    for group in groups:
-        carry, state = _scan_layers(p, carry, group, slot, pos, geom, config, shards, state,
-                                    store=group[0] <= writes_global)
-    x, kept_frame, kept_global = carry
-    out = {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
-    if last_is_x:
-        out[keep[-1]] = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), len(keep) - 1, 0, dtype)
-    return out
 
 
 def _scan_layers(p: Params, carry: tuple, group: tuple[int, ...], slot: np.ndarray, pos: tuple,

@@ -195,7 +195,8 @@ def block_qkv(p: Params, x: jax.Array, num_heads: int, tables: "RopeTables | Non
     or None), over token chunks written into the results (the projections' float32
     products and the normalised x never exist for the whole sequence at once)."""
     dtype = x.dtype if dtype is None else dtype
-    return map_tokens(block_qkv_rows(p, num_heads, eps, dtype, parts), (x,) if tables is None else (x, tables.cos, tables.sin),
+    inputs = (x,) if tables is None else (x, tables.cos, tables.sin)
+    return map_tokens(block_qkv_rows(p, num_heads, eps, dtype, parts), inputs,
                       bytes_per_row=x.shape[0] * x.shape[-1] * 4 * len(parts) + x.shape[-1] * 4)
 
 
@@ -214,9 +215,9 @@ def block_qkv_rows(p: Params, num_heads: int, eps: float, dtype: Any, parts: str
 # ---------------------------------------------------------------------------------------
 
 
-def block_with_attention(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float = TORCH_LN_EPS, dtype: Any = None,
-              projected: bool = False, with_aux: bool = False, axis: int = 1, bytes_per_row: int | None = None,
-              multiple: int = 8):
+def block_with_attention(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float = TORCH_LN_EPS,
+                         dtype: Any = None, projected: bool = False, with_aux: bool = False, axis: int = 1,
+                         bytes_per_row: int | None = None, multiple: int = 8):
     """The pre-norm transformer block with LayerScale, the one copy every block runs (plain,
     DINO, camera trunk, compressed global): each chunk of rows of the residual stream x
     [B, N, C] becomes x + ls1(proj(attention)), then + ls2(mlp(norm2(.))).
@@ -228,7 +229,8 @@ def block_with_attention(p: Params, x: jax.Array, attend, inputs: tuple = (), *,
     rows before unmerging them); with `with_aux`, a pair (output, aux rows), aux stitched
     along `axis` and returned too. Hooks: `self_attention` (each chunk attends within
     itself: whole sequences per chunk), `attention_to` (queries of the chunk against given
-    K/V), the unmerge of `compression.global_block`, the saliency of `patch_embed`.
+    K/V), the unmerge of the merging block (`compression.merged_layer`), the saliency of
+    `patch_embed`.
 
     x is kept in its own dtype (float32 in the model); norms, attention and MLP compute in
     `dtype` (default x's): torch's autocast. One in-place pass over chunks of rows
@@ -298,7 +300,7 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
         return block_with_attention(p, x, lambda xc: attend(xc, *tables), **whole)
 
     x, (k, v) = chunks.map_tokens_through(block_qkv_rows(p, num_heads, eps, dtype, "kv"), x, tables,
-                                   bytes_per_row=b * c * 4 * 2 + c * 4)
+                                          bytes_per_row=b * c * 4 * 2 + c * 4)
     return block_with_attention(p, x, attention_to(p, num_heads, k, v, None, eps, dtype), tables, eps=eps, dtype=dtype)
 
 
@@ -316,8 +318,7 @@ def select_block(blocks: Params, indices, i: jax.Array) -> Params:
     `lax.scan` over `i`: one compiled body instead of one per block. The one way the
     model scans numbered blocks (aggregator, DINO, camera trunk, tracker). Picked by
     `lax.switch` rather than stacking all blocks along a new axis, because a stack copies
-    every weight on every call (~3% of the small benchmark forward; 2.4 GB per call at
-    the 1B layout)."""
+    every weight on every call."""
     indices = list(indices)
     if len(indices) == 1:
         return blocks[str(indices[0])]

@@ -150,8 +150,8 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
         return attention(q, k, v), cls_saliency(q, k, num_prefix)
 
     hidden = blk["mlp"]["fc1"]["kernel"].shape[-1]
-    x, saliency = layers.block_with_attention(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True, axis=0,
-                                   bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
+    x, saliency = layers.block_with_attention(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True,
+                                              axis=0, bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
 
     c = x.shape[-1]
     x = update_tokens(lambda xc: layers.layer_norm(p["norm"], xc, eps, jnp.float32), x.reshape(1, -1, c),

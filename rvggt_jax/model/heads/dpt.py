@@ -385,9 +385,8 @@ def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DP
     """The depth and point heads whose params are given ({"depth_head": ...,
     "point_head": ...}, either or both) in one loop over groups of frames: {"depth",
     "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
-    return them. One loop reads the kept aggregator layers once; two loops would each
-    need their own copy of them in XLA's plan (17 GB at 1000 frames of VGGT-1B in
-    bfloat16)."""
+    return them. One loop reads the kept aggregator layers once (two loops would each
+    need their own copy of them in XLA's plan)."""
     heads = {}
     args = (config, grid.image_hw, grid.patch_start_idx, grid.patch_size)
     if "depth_head" in params:
