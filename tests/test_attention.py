@@ -155,7 +155,7 @@ def test_working_memory_does_not_grow_with_keys_beyond_k_and_v():
     small, large = temp(4096), temp(32768)
     kv_growth = 2 * (32768 - 4096) * 64 * 4
     assert large - small <= 3 * kv_growth
-    assert large < attn.LOGITS_BLOCK_BYTES * 2 + 4 * 32768 * 64 * 4 + 2048 * 64 * 4 * 4
+    assert large < blocked.LOGITS_BLOCK_BYTES * 2 + 4 * 32768 * 64 * 4 + 2048 * 64 * 4 * 4
 
 
 @pytest.mark.parametrize("call, message", [

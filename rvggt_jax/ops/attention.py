@@ -29,14 +29,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
 from rvggt_jax.ops.kernels.fused import fused_attention
 
 IMPLEMENTATIONS = ("blocked", "xla", "cudnn")
-
-# Bytes of one logits block of the blocked kernel: a block that stays in L2/L3 and gives
-# the value matmul hundreds of rows (measurements: docs/benchmarks.md).
-LOGITS_BLOCK_BYTES = 24 * 2**20
 
 # A key bias this negative removes the key: exp(NEG_BIAS - max) is exactly 0 in float32,
 # and, being finite, a row whose keys are all removed can never turn into NaN.
@@ -74,7 +71,7 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
     bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
 
     if implementation == "blocked":
-        block_bytes = LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
+        block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
         return blocked_attention(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype)
     return fused_attention(q, k, v, bias32, scale, implementation)
 

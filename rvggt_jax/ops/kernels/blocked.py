@@ -6,7 +6,7 @@ results with it).
 
 Working memory does not grow with the number of keys beyond K and V themselves (and
 their head-major copies): one [rows, Nk] logits block per step, rows chosen so that the
-block fits the op's LOGITS_BLOCK_BYTES.
+block fits LOGITS_BLOCK_BYTES.
 """
 
 from __future__ import annotations
@@ -21,6 +21,9 @@ from rvggt_jax.ops.bits import Bits16, is_16bit_float, read_buffer
 from rvggt_jax.ops.chunks import dynamic_index
 from rvggt_jax.ops.ordering import zeros_from
 
+# Bytes of one logits block: a block that stays in L2/L3 and gives the value matmul
+# hundreds of rows (measurements: docs/benchmarks.md).
+LOGITS_BLOCK_BYTES = 24 * 2**20
 
 def query_blocks(nq: int, nk: int, itemsize: int = 4, block_bytes: int | None = None) -> tuple[int, int]:
     """(number of query blocks, rows per block) for one (batch, head) pair: the fewest
