@@ -84,7 +84,7 @@ def plan(frames: list[int], devices: int, presets: list[str], dtypes: list[str],
 
 def layer_exchange(cfg: VGGTConfig, layer: int, frames: int, h: int, w: int, devices: int, itemsize: int) -> dict:
     """Bytes one device receives in global layer `layer` (batch 1): what
-    `compression/block.py` exchanges, from the layer's static plan. A ring step receives
+    the global blocks exchange (`compression/`), from the layer's static plan. A ring step receives
     one device's share; an all-reduce (psum) of X bytes receives 2 (D - 1) / D X."""
     c, n = cfg.embed_dim, devices
     per_frame = cfg.patch_start_idx + h * w

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax.ops import attention as attn
+from rvggt_jax.ops.kernels import blocked, fused
 from test_layers import _reference
 
 
@@ -52,14 +53,14 @@ def test_dot_product_attention_path_with_folded_bias(d, with_bias):
 def test_fold_layout_pads_for_cudnn():
     q, k, v, bias = _qkv(d=64, dv=64)
     scale = 1 / math.sqrt(64)
-    qf, kf, vf = attn.fold_key_bias(q, k, v, bias, scale, attn.CUDNN_HEAD_MULTIPLE)
+    qf, kf, vf = fused.fold_key_bias(q, k, v, bias, scale, fused.CUDNN_HEAD_MULTIPLE)
     assert qf.shape[-1] == kf.shape[-1] == vf.shape[-1] == 72  # 64 + 1 -> a multiple of 8
     np.testing.assert_array_equal(np.asarray(qf[..., 64]), 1.0)
     np.testing.assert_allclose(np.asarray(kf[..., 64]), np.broadcast_to(bias[:, :, None] / scale, (2, 45, 3)),
                                rtol=1e-6)
     assert not np.any(np.asarray(qf[..., 65:])) and not np.any(np.asarray(kf[..., 65:]))
     assert not np.any(np.asarray(vf[..., 64:]))
-    qf, kf, vf = attn.fold_key_bias(q, k, v, None, scale, attn.CUDNN_HEAD_MULTIPLE)
+    qf, kf, vf = fused.fold_key_bias(q, k, v, None, scale, fused.CUDNN_HEAD_MULTIPLE)
     assert qf.shape[-1] == 64  # no bias: nothing added
 
 
@@ -85,14 +86,14 @@ def test_removed_keys_equal_dropping_them_and_stay_finite(implementation):
 def test_folded_bias_keeps_float32_precision_in_bfloat16():
     # hi + lo bfloat16 columns: the folded bias to ~2^-16, where one column keeps 2^-8
     bias = jnp.asarray(np.random.default_rng(3).uniform(-40, 40, (2, 500)), jnp.float32)
-    cols = attn.bias_columns(bias, jnp.bfloat16)
+    cols = fused.bias_columns(bias, jnp.bfloat16)
     assert cols.shape == (2, 500, 2) and cols.dtype == jnp.bfloat16
     err = np.abs(np.asarray(cols.astype(jnp.float32).sum(-1)) - np.asarray(bias))
     assert err.max() <= 2.0**-15 * 40
     assert np.abs(np.asarray(bias.astype(jnp.bfloat16).astype(jnp.float32)) - np.asarray(bias)).max() > 2.0**-10 * 40
-    assert attn.bias_columns(bias, jnp.float32).shape == (2, 500, 1)
+    assert fused.bias_columns(bias, jnp.float32).shape == (2, 500, 1)
     q, k, v, _ = _qkv(d=64, dv=64)
-    qf, kf, vf = attn.fold_key_bias(*(jnp.asarray(t, jnp.bfloat16) for t in (q, k, v)), bias[:, :45], 0.125, 8)
+    qf, kf, vf = fused.fold_key_bias(*(jnp.asarray(t, jnp.bfloat16) for t in (q, k, v)), bias[:, :45], 0.125, 8)
     assert qf.shape[-1] == kf.shape[-1] == vf.shape[-1] == 72  # 64 + 2 -> a multiple of 8
     np.testing.assert_array_equal(np.asarray(qf[..., 64:66], np.float32), 1.0)
     assert not np.any(np.asarray(qf[..., 66:], np.float32)) and not np.any(np.asarray(kf[..., 66:], np.float32))
@@ -114,7 +115,7 @@ def test_bfloat16_operands_float32_softmax(implementation):
 
 @pytest.mark.parametrize("nq, nk, budget", [(3152, 3152, 24 * 2**20), (100, 100, 10**9), (1000, 77, 4096), (5, 10**6, 1)])
 def test_query_blocks_cover_all_rows_within_budget(nq, nk, budget):
-    n, rows = attn.query_blocks(nq, nk, 4, budget)
+    n, rows = blocked.query_blocks(nq, nk, 4, budget)
     assert n * rows >= nq > (n - 1) * rows  # every row, no empty block
     if n > 1:
         assert rows % 8 == 0 and n * rows - nq < 8 * n
@@ -126,7 +127,7 @@ def test_query_blocks_cover_all_rows_within_budget(nq, nk, budget):
 
 def test_global_attention_size_uses_few_large_blocks():
     # The benchmark shape (16 frames x 197 tokens): 2 blocks of 1576 rows per head.
-    assert attn.query_blocks(3152, 3152) == (2, 1576)
+    assert blocked.query_blocks(3152, 3152) == (2, 1576)
 
 
 def test_attention_is_over_tokens_not_heads():
@@ -154,7 +155,7 @@ def test_working_memory_does_not_grow_with_keys_beyond_k_and_v():
     small, large = temp(4096), temp(32768)
     kv_growth = 2 * (32768 - 4096) * 64 * 4
     assert large - small <= 3 * kv_growth
-    assert large < attn.LOGITS_BLOCK_BYTES * 2 + 4 * 32768 * 64 * 4 + 2048 * 64 * 4 * 4
+    assert large < blocked.LOGITS_BLOCK_BYTES * 2 + 4 * 32768 * 64 * 4 + 2048 * 64 * 4 * 4
 
 
 @pytest.mark.parametrize("call, message", [

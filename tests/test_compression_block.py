@@ -313,8 +313,9 @@ def test_global_block_computes_its_static_plan_once(block_params):
         jax.eval_shape(lambda x: global_block(block_params, x, pos, 0, cfg, state)[0], x)
     finally:
         sys.setprofile(None)
-    # (padded_head_dim: the block's check of its attention's head dim against the plan)
-    assert not calls["partition.py"] and set(calls["plan.py"]) <= {"padded_head_dim"}, calls
+    # (check_shapes, padded_head_dim: the block's check of its attention's shapes against
+    # the plan)
+    assert not calls["partition.py"] and set(calls["plan.py"]) <= {"check_shapes", "padded_head_dim"}, calls
 
 
 @pytest.mark.parametrize("name", ["regime", "regime_paper", "fastvggt", "avggt"])

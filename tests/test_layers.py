@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rvggt_jax.ops import chunks
+from rvggt_jax.ops import chunks, ordering
 
 from rvggt_jax.model import layers
 
@@ -97,7 +97,7 @@ def test_periodic_rows_are_the_tiled_rows(rows):
 
     for run in (lambda c: chunks.map_tokens(fn, (x, c), rows=rows),
                 lambda c: chunks.update_tokens(fn, x, (c,), rows=rows),
-                lambda c: chunks.read_tokens(fn, x, (c,), rows=rows)[1],
+                lambda c: chunks.map_tokens_through(fn, x, (c,), rows=rows)[1],
                 lambda c: chunks.fold_tokens(lambda a, s, n, t, cc: a + fn(t, cc).sum(axis=1), jnp.zeros((2, 6)),
                                              (x, c), 100, 1, rows)):
         np.testing.assert_array_equal(np.asarray(jax.jit(run)(per)), np.asarray(jax.jit(run)(tiled)))
@@ -129,7 +129,7 @@ def test_row_chunk_size():
     assert chunks.row_chunks(50, 4, 400) == 50  # everything fits: one chunk
 
 
-def test_zeros_after_are_zeros_whatever_the_dependency_holds():
+def test_zeros_from_are_zeros_whatever_the_dependency_holds():
     for dep in (np.array([np.nan, 1.0]), np.array([np.inf]), np.array([-3.0])):
-        z = jax.jit(lambda d: chunks.zeros_after((3, 2), jnp.bfloat16, d))(dep)
+        z = jax.jit(lambda d: ordering.zeros_from((3, 2), jnp.bfloat16, d))(dep)
         assert z.dtype == jnp.bfloat16 and not np.any(np.asarray(z, np.float32))

@@ -57,7 +57,7 @@ def test_bad_sizes_are_named(frames, height, width):
 
 
 def test_kept_layers_are_never_converted_whole(plans):
-    # bfloat16 kept layers are held as bits (chunks.Bits16) and the heads slice them per
+    # bfloat16 kept layers are held as bits (bits.Bits16) and the heads slice them per
     # group of frames: no op of the compiled forward may convert a whole kept buffer [K,
     # B, S, P, C] (a loop-invariant view XLA hoists out of the heads' loop: 8.5 GB per
     # buffer at 1000 frames of VGGT-1B, before Bits16)
@@ -90,11 +90,11 @@ def test_last_layer_global_half_has_no_slot(plans):
     assert slots == {keep, keep - 1}, slots
 
 
-@pytest.mark.parametrize("fn", ["map_tokens", "read_tokens"])
+@pytest.mark.parametrize("fn", ["map_tokens", "map_tokens_through"])
 def test_16bit_chunk_outputs_are_written_in_place(fn):
     # A bfloat16 result stitched from chunks whose last chunk overlaps the one before (n
     # not a multiple of the chunk) is written in place: reading the written rows back made
-    # XLA:CPU copy the whole result in every step (chunks._sweep), a temporary as large as
+    # XLA:CPU copy the whole result in every step (chunks._chunk_loop), a temporary as large as
     # the result.
     import jax
     import jax.numpy as jnp
@@ -110,7 +110,7 @@ def test_16bit_chunk_outputs_are_written_in_place(fn):
     def run(x):
         if fn == "map_tokens":
             return chunks.map_tokens(half, (x,), rows=rows)
-        return chunks.read_tokens(half, x, rows=rows)  # (x too: an argument it owns is copied)
+        return chunks.map_tokens_through(half, x, rows=rows)  # (x too: an argument it owns is copied)
 
     compiled = jax.jit(run).lower(x).compile()
     result_bytes = n * c * 2

@@ -70,13 +70,14 @@ def test_cache_blocking_leaves_every_output_at_parity(tiny, golden, monkeypatch)
     # with a tail of 1; global blocks in query chunks of 184 rows over 279 tokens, after
     # K and V), and DPT groups of 2 frames over 3 (the last group overlaps the one before),
     # and hold the whole model to the same 1e-4.
-    from rvggt_jax.ops import attention, chunks
+    from rvggt_jax.ops import chunks
+    from rvggt_jax.ops.kernels import blocked
     from rvggt_jax.model.heads import dpt
 
-    monkeypatch.setattr(attention, "LOGITS_BLOCK_BYTES", 4096)
+    monkeypatch.setattr(blocked, "LOGITS_BLOCK_BYTES", 4096)
     monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2 * 93 * 4 * 128)
     monkeypatch.setattr(dpt, "GROUP_PIXELS", 2 * 112 * 154)
-    assert attention.query_blocks(3 * 93, 3 * 93)[0] > 1
+    assert blocked.query_blocks(3 * 93, 3 * 93)[0] > 1
     assert chunks.row_chunks(3, 93 * 4 * 128, multiple=1) == 2  # frames per chunk
     assert chunks.row_chunks(3 * 93, 4 * 128) == 184 and (3 * 93) % 184  # global query rows
     assert dpt.frames_per_group(3, (112, 154)) == 2

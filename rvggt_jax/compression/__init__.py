@@ -4,16 +4,29 @@
     state = compression.init_state(config.compression, saliency, geometry)
     x, state = compression.global_block(p_block, x, pos, layer, config, state)
 
-See docs/method.md.
+The static half (the configuration and its presets, the partition of tokens, each layer's
+plan) imports no model code, so `rvggt_jax.config` can hold a `CompressionConfig`; the
+blocks themselves build on the model's block (`model.layers`). See docs/method.md.
 """
 
-from rvggt_jax.compression.block import State, dense_global_block, global_block, init_state
-from rvggt_jax.compression.config import PRESETS, CompressionConfig, LayerKind, make_compression, sigma_to_tile
-from rvggt_jax.compression.merge import Match
-from rvggt_jax.compression.partition import Geometry
-from rvggt_jax.compression.plan import LayerPlan, layer_plan
+import importlib
 
-__all__ = [
-    "CompressionConfig", "Geometry", "LayerKind", "LayerPlan", "Match", "PRESETS", "State", "dense_global_block",
-    "global_block", "init_state", "layer_plan", "make_compression", "sigma_to_tile",
-]
+# Public names resolved on first use: importing the configuration (compression.config,
+# as rvggt_jax.config does) does not load the blocks, which import the model's layers.
+_LAZY = {
+    "global_block": "block",
+    "State": "state", "init_state": "state",
+    "PRESETS": "config", "CompressionConfig": "config", "LayerKind": "config", "make_compression": "config",
+    "sigma_to_tile": "config",
+    "Match": "merge",
+    "Geometry": "partition",
+    "LayerPlan": "plan", "layer_plan": "plan",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"rvggt_jax.compression.{_LAZY[name]}"), name)
+    raise AttributeError(f"module 'rvggt_jax.compression' has no attribute {name!r}")

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.ops import chunks
+from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.compression.plan import LayerPlan
 
@@ -43,8 +44,8 @@ def normalize(x: jax.Array, eps: float = 1e-6) -> jax.Array:
     return x * jax.lax.rsqrt(jnp.maximum(jnp.sum(x * x, axis=-1, keepdims=True), eps * eps))
 
 
-# Bytes of one block of float32 cosine similarities [rows, N_dst] (the similarity matrix
-# of 1000 frames is 770K x 272K): blocks that stay in cache for the two reductions.
+# Bytes of one block of float32 cosine similarities [rows, N_dst]: blocks that stay in
+# cache for the two reductions (the whole matrix is [N_src, N_dst]).
 SIMILARITY_BLOCK_BYTES = 8 * 2**20
 
 
@@ -62,98 +63,129 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     time: the [Na, Nb] similarities never exist.
     `transform` (per token, e.g. the block's norm1) is applied to gathered rows first.
 
-    Split over devices (`shards`; metric holds this device's tokens, `per_frame` per
-    frame): every device gets every dst's unit row (G = 1) and matches its own src, whose
-    results are gathered back into the global order; with G > 1 each group (a frame)
-    lives on one device and is matched there."""
+    Three algorithms: the whole sequence on one device (`_match_sequence`) or over
+    devices (`_match_over_devices`: metric holds this device's tokens, `per_frame` per
+    frame; every device's dst rows travel around the ring), and within groups
+    (`_match_within_groups`: each group, a frame, on the device that holds it)."""
+    unit = _UnitRows(metric, metric.dtype if dtype is None else dtype, transform)
     sharded = shards is not None and shards.sharded
-    dtype = metric.dtype if dtype is None else dtype
+    if src_idx.shape[0] > 1:
+        return _match_within_groups(unit, src_idx, dst_idx, shards if sharded else None, per_frame)
+    if sharded:
+        score, arg = _match_over_devices(unit, src_idx[0], dst_idx[0], chunk, shards, per_frame)
+    else:
+        score, arg = _match_sequence(unit, src_idx[0], dst_idx[0], chunk)
+    return score[:, None], arg[:, None]
 
-    def _unit(rows, dtype):
-        return normalize((rows if transform is None else transform(rows)).astype(jnp.float32)).astype(dtype)
-    b = metric.shape[0]
-    g, na = src_idx.shape
-    nb = dst_idx.shape[1]
+
+class _UnitRows(NamedTuple):
+    """Unit rows of the metric's tokens: gathered, transformed, normalised in float32,
+    stored in `dtype`."""
+
+    metric: jax.Array
+    dtype: object
+    transform: object
+
+    def of(self, rows: jax.Array) -> jax.Array:
+        rows = rows if self.transform is None else self.transform(rows)
+        return normalize(rows.astype(jnp.float32)).astype(self.dtype)
+
+    def at(self, idx: jax.Array) -> jax.Array:
+        """[B, M, C] unit rows of the tokens idx [M], a chunk of tokens at a time (the
+        float32 rows of all tokens never exist)."""
+        per_row = self.metric.shape[0] * self.metric.shape[-1] * 4 * 3
+        return chunks.map_tokens(lambda i: self.of(chunks.take(self.metric, i[0], axis=1)), (idx[None],),
+                                 bytes_per_row=per_row, dep=self.metric)
+
+
+def _best(a: jax.Array, d: jax.Array, nb: int, rank: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """Unit rows a [..., Na, C] against d [..., Nb', C] -> (max cosine, argmax) [..., Na]:
+    argmax as an index into the group's nb dst (`rank`: a device's dst block's ranks in
+    the whole dst list, -1 for padding slots)."""
+    sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
+    if rank is None:
+        rank = jnp.arange(sims.shape[-1], dtype=jnp.float32)
+    else:
+        sims = jnp.where(rank >= 0, sims, -jnp.inf)
+    top = jnp.max(sims, axis=-1)
+    # argmax as the first index reaching the max: two plain reductions, 3x faster on
+    # XLA:CPU than its argmax (a variadic reduce); equal, ties included (a row of NaN
+    # features gets the last index). Indices as float32: exact below 2^24.
+    first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
+    return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
+
+
+def _src_rows_per_block(na: int, b: int, dst_rows: int, chunk: int) -> int:
+    """Src rows per block of similarities against `dst_rows` dst rows."""
+    rows = chunks.row_chunks(na, b * dst_rows * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
+    return min(rows, chunk) if chunk > 0 else rows
+
+
+def _match_sequence(unit: _UnitRows, src_idx: np.ndarray, dst_idx: np.ndarray, chunk: int):
+    """Every src [Na] against every dst [Nb] on one device -> ([B, Na], [B, Na])."""
+    # the unit src rows once (gathering them block by block inside the loop is 2x
+    # slower), then blocks of src rows against the dst
+    src = unit.at(jnp.asarray(src_idx, jnp.int32))
+    dst = unit.at(jnp.asarray(dst_idx, jnp.int32))
+    rows = _src_rows_per_block(src_idx.size, src.shape[0], dst.shape[1], chunk)
+    return chunks.map_tokens(lambda a: _best(a, dst, dst_idx.size), (src,), axis=1, rows=rows)
+
+
+def _match_over_devices(unit: _UnitRows, src_idx: np.ndarray, dst_idx: np.ndarray, chunk: int,
+                        shards: FrameShards, per_frame: int):
+    """`_match_sequence` with the tokens split over devices: this device's src against
+    every device's dst block, the blocks passed around the devices, the best so far kept
+    (ties: the lowest rank, as one device's first-index rule); the results gathered back
+    into the global src order."""
+    nb = dst_idx.size
+    table, order = shards.local_positions(src_idx, per_frame)
+    dst_table, dst_order = shards.local_positions(dst_idx, per_frame)
+    # the global rank (in dst_idx) of every slot of every device's dst, -1 for padding
+    ranks = np.full(dst_table.size, -1, np.int64)
+    ranks[dst_order] = np.arange(nb)
+    dst_rank = shards.per_device(ranks.reshape(dst_table.shape).astype(np.float32))
+    local_dst = jnp.asarray(shards.per_device(dst_table), jnp.int32)
+    local_src = jnp.asarray(shards.per_device(table), jnp.int32)
+    src, dst = unit.at(local_src), unit.at(local_dst)
+    rows = _src_rows_per_block(local_src.shape[0], src.shape[0], dst.shape[1], chunk)
+
+    def against(block, rank):
+        return chunks.map_tokens(lambda a: _best(a, block, nb, rank), (src,), axis=1, rows=rows)
+
+    def step(_, carry):
+        (top, arg), block = carry
+        block = shards.ring_shift(block)
+        t2, a2 = against(*block)
+        better = (t2 > top) | ((t2 == top) & (a2 < arg))
+        return (jnp.where(better, t2, top), jnp.where(better, a2, arg)), block
+
+    (score, arg), _ = jax.lax.fori_loop(1, shards.devices, step, (against(dst, dst_rank), (dst, dst_rank)))
+    return shards.gather_results(score, order, 1), shards.gather_results(arg, order, 1)
+
+
+def _match_within_groups(unit: _UnitRows, src_idx: np.ndarray, dst_idx: np.ndarray, shards: FrameShards | None,
+                         per_frame: int):
+    """Each group's src against its own dst ([G, Na], [G, Nb]) -> ([B, G, Na], [B, G, Na]),
+    blocks of groups at a time; over devices (`shards`), each device matches the groups
+    it holds and the results are gathered into the global group order."""
+    b, nb = unit.metric.shape[0], dst_idx.shape[1]
     order = None
-    if sharded and g == 1:
-        table, order = shards.local_positions(src_idx[0], per_frame)
-        dst_table, dst_order = shards.local_positions(dst_idx[0], per_frame)
-        # the global rank (in dst_idx) of every slot of every device's dst, -1 for padding
-        ranks = np.full(dst_table.size, -1, np.int64)
-        ranks[dst_order] = np.arange(nb)
-        dst_rank = shards.per_device(ranks.reshape(dst_table.shape).astype(np.float32))
-        dst_idx = shards.per_device(dst_table)[None]
-        src_idx = shards.per_device(table)[None]
-    elif sharded:
+    if shards is not None:
         src_table, dst_table, order = _group_tables(shards, src_idx, dst_idx, per_frame)
         src_idx, dst_idx = shards.per_device(src_table), shards.per_device(dst_table)
     src_idx, dst_idx = jnp.asarray(src_idx, jnp.int32), jnp.asarray(dst_idx, jnp.int32)
-    na = src_idx.shape[1]
-
-    def gathered(score, arg):
-        if order is None:
-            return score, arg
-        return shards.gather_results(score, order, 1), shards.gather_results(arg, order, 1)
-
-    def best(a, d, rank=None):
-        sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
-        if rank is None:
-            rank = jnp.arange(sims.shape[-1], dtype=jnp.float32)
-        else:  # a device's dst block: ranks of the whole dst list, padding slots out
-            sims = jnp.where(rank >= 0, sims, -jnp.inf)
-        top = jnp.max(sims, axis=-1)
-        # argmax as the first index reaching the max: two plain reductions, 3x faster on
-        # XLA:CPU than its argmax (a variadic reduce); equal, ties included (a row of
-        # NaN features gets the last index).
-        # (indices as float32: exact below 2^24, and a float min is the faster reduction)
-        first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
-        return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
-
-    def unit_rows(idx):
-        # [B, M, C] unit rows in `dtype`, gathered, transformed and normalised a chunk at a
-        # time: the float32 rows of all src (3 GB at 1000 frames of VGGT-1B) never exist
-        per_row = b * metric.shape[-1] * 4 * 3
-        return chunks.map_tokens(lambda i: _unit(chunks.take(metric, i[0], axis=1), dtype), (idx[None],),
-                                 bytes_per_row=per_row, dep=metric)
-
-    # the unit src rows once (a [G*Na, C] copy in the compute dtype: gathering them block
-    # by block inside the loop is 2x slower), then blocks of src rows against the dst
-    src = unit_rows(src_idx.reshape(-1))
-    if g == 1:
-        dst = unit_rows(dst_idx[0])  # [B, Nb, C] (a device's: [B, Nb', C])
-        rows = chunks.row_chunks(na, b * dst.shape[1] * 4, SIMILARITY_BLOCK_BYTES, multiple=64)
-        rows = min(rows, chunk) if chunk > 0 else rows
-        if not sharded:
-            score, arg = chunks.map_tokens(lambda a: best(a, dst), (src,), axis=1, rows=rows)
-            return score[:, None], arg[:, None]
-
-        # over devices: this device's src against every device's dst block, the blocks
-        # passed around the devices; the best so far kept (ties: the lowest rank, as one
-        # device's first-index rule)
-        def against(block, rank):
-            return chunks.map_tokens(lambda a: best(a, block, rank), (src,), axis=1, rows=rows)
-
-        def step(_, carry):
-            (top, arg), block = carry
-            block = shards.ring_shift(block)
-            t2, a2 = against(*block)
-            better = (t2 > top) | ((t2 == top) & (a2 < arg))
-            return (jnp.where(better, t2, top), jnp.where(better, a2, arg)), block
-
-        (score, arg), _ = jax.lax.fori_loop(1, shards.devices, step, (against(dst, dst_rank), (dst, dst_rank)))
-        score, arg = gathered(score, arg)
-        return score[:, None], arg[:, None]
-
-    g = src_idx.shape[0]
+    g, na = src_idx.shape
+    src = unit.at(src_idx.reshape(-1)).reshape(b, g, na, -1)
     frames = chunks.row_chunks(g, b * na * nb * 4, SIMILARITY_BLOCK_BYTES, multiple=1)
 
     def per_frames(a, di):  # [B, F, Na, C], [F, Nb] -> [B, F, Na] each
-        f = a.shape[1]
-        d = _unit(chunks.take(metric, di.reshape(-1), axis=1), dtype).reshape(b, f, nb, -1)
-        return best(a, d)
+        d = unit.of(chunks.take(unit.metric, di.reshape(-1), axis=1)).reshape(b, a.shape[1], nb, -1)
+        return _best(a, d, nb)
 
-    src = src.reshape(b, g, na, -1)
-    return gathered(*chunks.map_tokens(per_frames, (src, dst_idx[None]), axis=1, rows=frames, dep=metric))
+    score, arg = chunks.map_tokens(per_frames, (src, dst_idx[None]), axis=1, rows=frames, dep=unit.metric)
+    if order is None:
+        return score, arg
+    return shards.gather_results(score, order, 1), shards.gather_results(arg, order, 1)
 
 
 def _group_tables(shards: FrameShards, src_idx: np.ndarray, dst_idx: np.ndarray, per_frame: int):
@@ -251,14 +283,14 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
 
     dep: the float32 sums are made after this value (default the first input): one
     merge_map after another then holds one set of sums at a time. owned: returns
-    (inputs[0], means...), the loop owning the first input (`chunks.read_tokens`: no copy
-    of the residual stream for an in-place pass after it)."""
+    (inputs[0], means...), the first input passing through the loop
+    (`chunks.fold_tokens_through`: the residual stream stays one buffer)."""
     x0 = inputs[0]
     b, n = x0.shape[:2]
     offsets = (jnp.arange(b, dtype=jnp.int32) * n_query)[:, None]
     rows = chunks.row_chunks(n, b * bytes_per_row)
     spec = jax.eval_shape(fn, *[chunks.dynamic_slice(t, 0, min(rows, n), 1) for t in inputs])
-    sums = tuple(chunks.zeros_after((b * n_query,) + o.shape[2:], jnp.float32, x0 if dep is None else dep)
+    sums = tuple(zeros_from((b * n_query,) + o.shape[2:], jnp.float32, x0 if dep is None else dep)
                  for o in spec)
 
     def add(acc, group, *chunk):
@@ -271,8 +303,8 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
     if rows >= n:
         sums = add(sums, group, *map(chunks.whole, inputs))
     elif owned:
-        x0, sums = chunks.fold_owned(lambda acc, xc, g, *c: add(acc, g, xc, *c), x0, sums, (group, *inputs[1:]),
-                                     n, rows)
+        x0, sums = chunks.fold_tokens_through(lambda acc, xc, g, *c: add(acc, g, xc, *c), x0, sums,
+                                              (group, *inputs[1:]), n, rows)
     else:
         sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
@@ -286,8 +318,8 @@ def block_sums(values: jax.Array, group: jax.Array, rows: int, into: jax.Array |
     (tokens whose group is outside [0, rows) are left out), added to `into` (default
     zeros): one block of the group sums (over devices, the block `ring_sum_scatter` is
     making, added in place to the sum received). Token chunks are cast to float32 and
-    added one at a time: a float32 copy of all the values would be a loop-invariant XLA
-    hoists out of the ring."""
+    added one at a time (a float32 copy of all the values would be hoisted out of the
+    ring as a loop invariant)."""
     b, n = values.shape[:2]
     offsets = (jnp.arange(b, dtype=jnp.int32) * rows)[:, None]
 
@@ -297,7 +329,7 @@ def block_sums(values: jax.Array, group: jax.Array, rows: int, into: jax.Array |
         return acc.at[ids].add(vc.reshape((-1,) + vc.shape[2:]).astype(jnp.float32), mode="drop")
 
     shape = (b * rows,) + values.shape[2:]
-    sums = chunks.zeros_after(shape, jnp.float32, values) if into is None else into.reshape(shape)
+    sums = zeros_from(shape, jnp.float32, values) if into is None else into.reshape(shape)
     # (a quarter of a token chunk: the float32 chunk sits next to the ring's two blocks
     # of sums at the sharded forward's peak)
     chunk = chunks.row_chunks(n, b * math.prod(values.shape[2:]) * 4, chunks.TOKEN_CHUNK_BYTES // 4)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.model.aggregator import aggregator_forward
-from rvggt_jax.ops.chunks import zeros_after
+from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.model.heads.camera import camera_head
@@ -169,7 +169,7 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
     # from the last head output (x 1, exact) so that XLA makes it at the end, not at the
     # program start where it would sit through the whole forward.
     last = jax.tree.leaves(out)
-    out["images"] = images * (1.0 + zeros_after((), jnp.float32, last[-1])) if last else images
+    out["images"] = images * (1.0 + zeros_from((), jnp.float32, last[-1])) if last else images
     if config.return_saliency:
         out["saliency"], out["patch_tokens"] = saliency, patch_tokens
     for i in config.return_layers:

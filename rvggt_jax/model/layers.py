@@ -188,19 +188,20 @@ def attention_qkv(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | Rop
     return tuple(out)
 
 
-def normed_qkv(p: Params, x: jax.Array, num_heads: int, tables: "RopeTables | None" = None,
+def block_qkv(p: Params, x: jax.Array, num_heads: int, tables: "RopeTables | None" = None,
                eps: float = TORCH_LN_EPS, dtype: Any = None, parts: str = "qkv") -> tuple[jax.Array, ...]:
     """q, k, v [B, N, H, D] (those in `parts`) in `dtype` of a block's attention from its
     residual stream x [B, N, C]: norm1, projection, qk-norm, RoPE (`tables` [1|B, N, 1, D],
     or None), over token chunks written into the results (the projections' float32
     products and the normalised x never exist for the whole sequence at once)."""
     dtype = x.dtype if dtype is None else dtype
-    return map_tokens(qkv_fn(p, num_heads, eps, dtype, parts), (x,) if tables is None else (x, tables.cos, tables.sin),
+    inputs = (x,) if tables is None else (x, tables.cos, tables.sin)
+    return map_tokens(block_qkv_rows(p, num_heads, eps, dtype, parts), inputs,
                       bytes_per_row=x.shape[0] * x.shape[-1] * 4 * len(parts) + x.shape[-1] * 4)
 
 
-def qkv_fn(p: Params, num_heads: int, eps: float, dtype: Any, parts: str = "qkv"):
-    """The per-token function of `normed_qkv`: (x rows [B, r, C], cos, sin [1|B, r, 1, D]
+def block_qkv_rows(p: Params, num_heads: int, eps: float, dtype: Any, parts: str = "qkv"):
+    """The per-token function of `block_qkv`: (x rows [B, r, C], cos, sin [1|B, r, 1, D]
     or nothing) -> q, k, v rows."""
     def one(xc, *tc):
         pos = RopeTables(*tc) if tc else None
@@ -214,9 +215,9 @@ def qkv_fn(p: Params, num_heads: int, eps: float, dtype: Any, parts: str = "qkv"
 # ---------------------------------------------------------------------------------------
 
 
-def run_block(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float = TORCH_LN_EPS, dtype: Any = None,
-              projected: bool = False, with_aux: bool = False, axis: int = 1, bytes_per_row: int | None = None,
-              multiple: int = 8):
+def block_with_attention(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float = TORCH_LN_EPS,
+                         dtype: Any = None, projected: bool = False, with_aux: bool = False, axis: int = 1,
+                         bytes_per_row: int | None = None, multiple: int = 8):
     """The pre-norm transformer block with LayerScale, the one copy every block runs (plain,
     DINO, camera trunk, compressed global): each chunk of rows of the residual stream x
     [B, N, C] becomes x + ls1(proj(attention)), then + ls2(mlp(norm2(.))).
@@ -228,7 +229,8 @@ def run_block(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float
     rows before unmerging them); with `with_aux`, a pair (output, aux rows), aux stitched
     along `axis` and returned too. Hooks: `self_attention` (each chunk attends within
     itself: whole sequences per chunk), `attention_to` (queries of the chunk against given
-    K/V), the unmerge of `compression.global_block`, the saliency of `patch_embed`.
+    K/V), the unmerge of the merging block (`compression.merged_layer`), the saliency of
+    `patch_embed`.
 
     x is kept in its own dtype (float32 in the model); norms, attention and MLP compute in
     `dtype` (default x's): torch's autocast. One in-place pass over chunks of rows
@@ -243,7 +245,7 @@ def run_block(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float
         out, aux = attend(xc, *ic) if with_aux else (attend(xc, *ic), None)
         if not projected:
             out = linear(proj, out.reshape(xc.shape[:2] + (c,)))
-        y = _finish_rows(p, xc, out, eps, dtype)
+        y = _residual_mlp(p, xc, out, eps, dtype)
         return (y, aux) if with_aux else y
 
     if with_aux:
@@ -252,25 +254,25 @@ def run_block(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float
 
 
 def self_attention(p: Params, num_heads: int, eps: float = TORCH_LN_EPS, dtype: Any = None):
-    """`run_block`'s hook for rows that attend among themselves: (x rows [B, r, C], cos,
+    """`block_with_attention`'s hook for rows that attend among themselves: (x rows [B, r, C], cos,
     sin [1|B, r, 1, D] or nothing) -> attention output [B, r, H, D]."""
-    qkv = qkv_fn(p, num_heads, eps, dtype)
+    qkv = block_qkv_rows(p, num_heads, eps, dtype)
     return lambda xc, *tc: attention(*qkv(xc, *tc))
 
 
 def attention_to(p: Params, num_heads: int, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None,
                  eps: float = TORCH_LN_EPS, dtype: Any = None):
-    """`run_block`'s hook for the query side of a long sequence: each chunk's Q (norm1,
+    """`block_with_attention`'s hook for the query side of a long sequence: each chunk's Q (norm1,
     projection, qk-norm, RoPE with its rows of cos, sin) attends to the given K/V
     [B, Nk, H, D] (with `key_bias` [B, Nk])."""
-    q_of = qkv_fn(p, num_heads, eps, dtype, "q")
+    q_of = block_qkv_rows(p, num_heads, eps, dtype, "q")
     return lambda xc, *tc: attention(q_of(xc, *tc)[0], k, v, key_bias)
 
 
 def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
           rope_freq: float | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
     """Pre-norm transformer block with LayerScale over B sequences: x [B, N, C] ->
-    [B, N, C], attention within each sequence (`run_block`).
+    [B, N, C], attention within each sequence (`block_with_attention`).
 
     x is the residual stream (kept in its own dtype, float32 in the model); attention and
     MLP compute in `dtype` (default x's): the mixed precision of torch's autocast.
@@ -294,15 +296,15 @@ def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables 
         attend = self_attention(p, num_heads, eps, dtype)
         tables = tuple(map(chunks.whole, tables))
         if tables and tables[0].shape[0] != 1:  # per-sequence positions: chunk them too
-            return run_block(p, x, attend, tables, **whole)
-        return run_block(p, x, lambda xc: attend(xc, *tables), **whole)
+            return block_with_attention(p, x, attend, tables, **whole)
+        return block_with_attention(p, x, lambda xc: attend(xc, *tables), **whole)
 
-    x, (k, v) = chunks.read_tokens(qkv_fn(p, num_heads, eps, dtype, "kv"), x, tables,
-                                   bytes_per_row=b * c * 4 * 2 + c * 4)
-    return run_block(p, x, attention_to(p, num_heads, k, v, None, eps, dtype), tables, eps=eps, dtype=dtype)
+    x, (k, v) = chunks.map_tokens_through(block_qkv_rows(p, num_heads, eps, dtype, "kv"), x, tables,
+                                          bytes_per_row=b * c * 4 * 2 + c * 4)
+    return block_with_attention(p, x, attention_to(p, num_heads, k, v, None, eps, dtype), tables, eps=eps, dtype=dtype)
 
 
-def _finish_rows(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None
+def _residual_mlp(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None
                  ) -> jax.Array:
     """x + ls1(attn_rows), then + ls2(mlp(norm2(.))): rows of the residual stream x
     [..., C] and the attention branch's (projected) output [..., C]."""
@@ -316,8 +318,7 @@ def select_block(blocks: Params, indices, i: jax.Array) -> Params:
     `lax.scan` over `i`: one compiled body instead of one per block. The one way the
     model scans numbered blocks (aggregator, DINO, camera trunk, tracker). Picked by
     `lax.switch` rather than stacking all blocks along a new axis, because a stack copies
-    every weight on every call (~3% of the small benchmark forward; 2.4 GB per call at
-    the 1B layout)."""
+    every weight on every call."""
     indices = list(indices)
     if len(indices) == 1:
         return blocks[str(indices[0])]

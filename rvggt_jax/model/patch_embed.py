@@ -112,13 +112,6 @@ def cls_saliency(q: jax.Array, k: jax.Array, num_prefix: int) -> jax.Array:
     return jax.nn.softmax(logits, axis=-1).mean(axis=1)[:, num_prefix:]
 
 
-def dino_forward(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
-    """images [N, 3, H, W] (normalised) -> (x_norm_patchtokens [N, h*w, C] float32,
-    saliency Psi [N, h*w] float32); see `dino_tokens`."""
-    x, num_prefix, saliency = dino_tokens(p, images, config)
-    return x[:, num_prefix:], saliency
-
-
 def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
     """DINOv2 forward on normalised images, its blocks in `config.compute_dtype` (the
     residual stream in float32, as under torch's autocast).
@@ -150,15 +143,15 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
     # The last block's attention hook also returns the saliency, read off the q and k it
     # computes anyway; whole images per chunk, like every block.
     blk = p["blocks"][str(depth - 1)]
-    qkv = layers.qkv_fn(blk, dino.num_heads, eps, dtype)
+    qkv = layers.block_qkv_rows(blk, dino.num_heads, eps, dtype)
 
     def attend_with_saliency(xc):
         q, k, v = qkv(xc)
         return attention(q, k, v), cls_saliency(q, k, num_prefix)
 
     hidden = blk["mlp"]["fc1"]["kernel"].shape[-1]
-    x, saliency = layers.run_block(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True, axis=0,
-                                   bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
+    x, saliency = layers.block_with_attention(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True,
+                                              axis=0, bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
 
     c = x.shape[-1]
     x = update_tokens(lambda xc: layers.layer_norm(p["norm"], xc, eps, jnp.float32), x.reshape(1, -1, c),

@@ -17,7 +17,6 @@ frames x tokens into one axis of `frames * L` rows.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -27,6 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.ops import chunks
+from rvggt_jax.ops.bits import as_bits, is_16bit_float
+from rvggt_jax.ops.ordering import zeros_from
 
 FRAMES_AXIS = "frames"
 
@@ -210,7 +211,7 @@ class FrameShards:
             blk = self.ring_shift(blk)
             return blk, take((d - t) % n, blk, acc)
 
-        first = take(d, blocks, chunks.zeros_after(idx.shape + blocks.shape[2:], blocks.dtype, blocks))
+        first = take(d, blocks, zeros_from(idx.shape + blocks.shape[2:], blocks.dtype, blocks))
         return jax.lax.fori_loop(1, n, step, (blocks, first))[1]
 
     def share(self, n: int) -> int:
@@ -223,20 +224,5 @@ jax.tree_util.register_static(FrameShards)
 
 def _moved(op: Callable[[jax.Array], jax.Array], x: jax.Array) -> jax.Array:
     """op(x) for a collective that only moves values (a permute, a psum with one non-zero
-    term): 16-bit floats go as their bit patterns, because XLA:CPU would move a
-    bfloat16 collective in float32 (twice the buffer)."""
-    if x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating):
-        return _as_bits(op, x)
-    return op(x)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _as_bits(op, x: jax.Array) -> jax.Array:
-    # the bitcast to integers has no derivative (JAX would give zero gradients through
-    # it): the JVP applies op, a linear map, to the tangent itself
-    return jax.lax.bitcast_convert_type(op(jax.lax.bitcast_convert_type(x, jnp.uint16)), x.dtype)
-
-
-@_as_bits.defjvp
-def _as_bits_jvp(op, primals, tangents):
-    return _as_bits(op, primals[0]), op(tangents[0])
+    term): 16-bit floats go as their bit patterns (XLA:CPU would move them in float32)."""
+    return as_bits(op, x) if is_16bit_float(x) else op(x)

@@ -7,7 +7,7 @@
 Each device holds its frames' tokens through the whole pass: patch embed, frame blocks,
 per-token work and the depth/point heads are local; the global blocks exchange what
 crosses frames (K/V, or the compressed sequence's matching and group sums: see
-`compression/block.py` and docs/sharding.md); the camera trunk and the tracker's update
+`compression/merged_layer.py` and docs/sharding.md); the camera trunk and the tracker's update
 transformer, which attend across frames, run on gathered [B, S, ...] tokens. Parameters
 are replicated. The result equals `rvggt_forward` up to float summation order.
 """

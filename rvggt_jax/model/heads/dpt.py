@@ -20,15 +20,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.model import layers
-from rvggt_jax.ops.chunks import dynamic_slice, zeros_after
+from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
+from rvggt_jax.model.kept import KeptLayer
 from rvggt_jax.model.params import Params
 
 # A list of every aggregator layer's tokens, or a dict {layer index: tokens} holding at
-# least the layers the head reads; each entry is [B, S, P, 2E] (an array or the
-# aggregator's `KeptLayer`, which the head slices per group of frames).
-Aggregated = Sequence[jax.Array] | Mapping[int, jax.Array]
+# least the layers the head reads; each entry is a `KeptLayer` [B, S, P, 2E], which the
+# head slices per group of frames (a plain array is taken as `KeptLayer.of(array)`).
+Aggregated = Sequence[KeptLayer | jax.Array] | Mapping[int, KeptLayer | jax.Array]
 
 POS_EMBED_RATIO = 0.1
 POS_EMBED_OMEGA0 = 100.0
@@ -229,21 +230,11 @@ def frames_per_group(num_frames: int, image_hw: tuple[int, int], group_pixels: i
     return int(min(num_frames, max(1, group_pixels // (image_hw[0] * image_hw[1]))))
 
 
-def _frame_slice(t, start, count: int) -> jax.Array:
-    """Frames [start, start + count) of a token source: an array [B, S, P, C] or an
-    aggregator `KeptLayer` -> [count, P, C] float32."""
-    if hasattr(t, "frames"):
-        return t.frames(start, count)
-    flat = t.reshape((-1,) + t.shape[2:])
-    # (the barrier keeps a cast on the slice, not hoisted onto the whole input)
-    return jax.lax.optimization_barrier(dynamic_slice(flat, start, count, 0)).astype(jnp.float32)
-
-
 def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int]):
     """Run a per-frame `fn(tokens [G, P, C] x 4) -> pytree of [G, ...]` over groups of G
     frames (a `fori_loop` writing each group's result in place).
 
-    tokens: each [B, S, P, C] (an array or an aggregator `KeptLayer`); returns the pytree
+    tokens: `KeptLayer`s [B, S, P, C]; returns the pytree
     with leaves [B, S, ...]. Nothing is padded or copied: when G does not divide B*S, the
     last group starts G frames before the end and recomputes a few frames (every op is
     per frame, so they get the same values)."""
@@ -255,14 +246,14 @@ def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int]):
 
     def run(i):
         start = jnp.minimum(i * g, n - g)
-        return start, fn([_frame_slice(t, start, g) for t in tokens])
+        return start, fn([t.frames(start, g) for t in tokens])
 
     if groups == 1:
         out = run(0)[1]
     else:
         shapes = jax.eval_shape(lambda: run(0)[1])
-        dep = _frame_slice(tokens[0], 0, 1)  # made when the tokens are, not at the program start
-        init = jax.tree.map(lambda o: zeros_after((n,) + o.shape[1:], o.dtype, dep), shapes)
+        dep = tokens[0].frames(0, 1)  # made when the tokens are, not at the program start
+        init = jax.tree.map(lambda o: zeros_from((n,) + o.shape[1:], o.dtype, dep), shapes)
 
         def body(i, acc):
             start, res = run(i)
@@ -272,10 +263,10 @@ def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int]):
     return jax.tree.map(lambda o: o.reshape((b, s) + o.shape[1:]), out)
 
 
-def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[jax.Array]:
+def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[KeptLayer]:
     if len(layer_idx) != 4:
         raise ValueError(f"the DPT head reads exactly 4 layers, got {layer_idx}")
-    return [aggregated[i] for i in layer_idx]
+    return [t if isinstance(t, KeptLayer) else KeptLayer.of(t) for t in (aggregated[i] for i in layer_idx)]
 
 
 def dpt_features(params: Params, aggregated: Aggregated, grid: TokenGrid, *,
@@ -394,9 +385,8 @@ def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DP
     """The depth and point heads whose params are given ({"depth_head": ...,
     "point_head": ...}, either or both) in one loop over groups of frames: {"depth",
     "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
-    return them. One loop reads the kept aggregator layers once; two loops would each
-    need their own copy of them in XLA's plan (17 GB at 1000 frames of VGGT-1B in
-    bfloat16)."""
+    return them. One loop reads the kept aggregator layers once (two loops would each
+    need their own copy of them in XLA's plan)."""
     heads = {}
     args = (config, grid.image_hw, grid.patch_start_idx, grid.patch_size)
     if "depth_head" in params:

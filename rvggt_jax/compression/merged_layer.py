@@ -1,0 +1,221 @@
+"""A merging global block: match -> merged Q/K/V -> attention over the merged rows ->
+output projection -> unmerge, every token taking its group's row.
+
+    x, state = merging_block(p_block, x, pos, plan, config, state)
+
+The steps, each a function below: the layer's `Match` (computed, or reused from the
+band's cache); the group means of q, k and v (`merged_qkv`: summed chunk by chunk as they
+are projected, no full-sequence Q, K or V); the keys the layer keeps (`kept_keys`: all
+merged rows, or the K/V-downsampled slots, plus the authors' duplicated protected dst);
+the attention (`attend`: one device, or around the ring); the unmerge inside the block.
+
+Split over devices, the merged rows are split in `rows` per device (a padding group at
+N_m collects the padding frames' tokens): each device projects its own tokens, the group
+sums are reduce-scattered one block at a time, the merged K/V and the merged output rows
+travel around the ring. See docs/sharding.md.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from rvggt_jax.compression import kv as kv_lib
+from rvggt_jax.compression import merge as merge_lib
+from rvggt_jax.compression.merge import Match
+from rvggt_jax.compression.kv_layer import rows_kv
+from rvggt_jax.compression.plan import LayerPlan, check_shapes
+from rvggt_jax.compression.state import State
+from rvggt_jax.model import layers
+from rvggt_jax.model.params import Params
+from rvggt_jax.ops import chunks
+from rvggt_jax.ops.attention import attention, log_sizes
+from rvggt_jax.ops.ordering import with_dependency
+from rvggt_jax.ops.ring import ring_attention
+from rvggt_jax.ops.shards import FrameShards
+
+
+class MergedRows(NamedTuple):
+    """This device's share of the merged rows (all of them on one device)."""
+
+    rows: int  # merged rows per device
+    first: jax.Array | int  # the index of this device's first merged row
+    group: jax.Array  # [B, N] int32: the group of each of this device's tokens
+    sizes: jax.Array  # [B, rows] float32: the group sizes of this device's rows
+
+
+class Keys(NamedTuple):
+    """The keys a merging layer attends to."""
+
+    k: jax.Array  # [B, M, H, D]
+    v: jax.Array  # [B, M, H, D]
+    sizes: jax.Array  # [B, M] group sizes g (the size bias log g)
+    valid: jax.Array | None  # [B, M] bool, or None when every slot is a key
+    dup: tuple | None  # over devices: (k, v, sizes, valid) of the duplicated protected dst
+
+
+def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerPlan, config, state: State
+                  ) -> tuple[jax.Array, State]:
+    """One merging global block over x [B, N, C] (this device's frames; pos: their RoPE
+    tables) under `plan` -> (x [B, N, C], the state with this layer's match and K/V slots
+    cached when the plan stores them)."""
+    match, state = layer_match(p_block, x, plan, config, state)
+    share = merged_rows(match, plan, state.shards)
+    x, qm, km, vm = merged_qkv(p_block, x, pos, match, share, plan, config, state.shards)
+    keys, state = kept_keys(p_block, x, pos, km, vm, match, share, plan, config, state)
+    out = attend(qm, keys, plan, config, state.shards)
+    # the output projection on the merged rows, then every token takes its group's row
+    b, c = x.shape[0], x.shape[-1]
+    proj = p_block["attn"]["proj"]
+    out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, share.rows, c),),
+                            bytes_per_row=b * c * 4 * 4)
+    return unmerge_block(p_block, x, out, share, config, state.shards), state
+
+
+def layer_match(p_block: Params, x: jax.Array, plan: LayerPlan, config, state: State) -> tuple[Match, State]:
+    """The layer's match: computed from x (cosine similarity of the metric, the protected
+    src kept out) and cached when the plan stores it, or the band's cached one."""
+    if plan.match == "reuse":
+        if plan.match_key not in state.matches:
+            raise ValueError(f"global block {plan.layer} reuses the match of {plan.match_key}, which is not cached")
+        return state.matches[plan.match_key], state
+    dtype = config.compute_dtype
+    # the norm1 metric is applied to the rows the matching gathers, never to all of x
+    norm1 = None if plan.metric == "input" else (lambda rows: layers.layer_norm(p_block["norm1"], rows, dtype=dtype))
+    protected = state.protected
+    protected_src = None if protected is None else jnp.take(protected, plan.partition.src_pos, axis=1, mode="clip")
+    match = merge_lib.compute_match(x, protected_src, plan, config.compression.match_chunk, dtype, norm1,
+                                    state.shards)
+    if plan.match_key is not None:
+        state = state.with_match(plan.match_key, match)
+    return match, state
+
+
+def merged_rows(match: Match, plan: LayerPlan, shards: FrameShards) -> MergedRows:
+    """This device's share of the match's merged rows."""
+    n_groups = plan.n_query + int(shards.padded > shards.frames)
+    rows = shards.share(n_groups)
+    group = shards.local_part(match.group, 1, plan.per_frame, pad_value=plan.n_query)
+    first = shards.index() * rows
+    padded = jnp.pad(match.sizes, ((0, 0), (0, rows * shards.devices - plan.n_query)), constant_values=1.0)
+    return MergedRows(rows, first, group, jax.lax.dynamic_slice_in_dim(padded, first, rows, 1))
+
+
+def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Match, share: MergedRows,
+               plan: LayerPlan, config, shards: FrameShards):
+    """(x, q, k, v): the group means [B, rows, H, D] of q, k and v (after qk-norm and
+    RoPE) of this device's merged rows, x passing through each loop. One of q, k, v at a
+    time, each summed after the previous mean, so that one float32 sum exists at once
+    (the norm is recomputed, a small price)."""
+    b, c = x.shape[0], x.shape[-1]
+    heads, dtype = config.num_heads, config.compute_dtype
+
+    def means(x, parts, after):
+        fn = layers.block_qkv_rows(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
+        if not shards.sharded:
+            return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
+                                       dep=after, owned=True)
+        # over devices: each device projects its tokens, the group sums reduce-scattered
+        xs, (vals,) = chunks.map_tokens_through(fn, x, (pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
+                                                dep=after)
+        sums = shards.ring_sum_scatter(
+            lambda block, acc: merge_lib.block_sums(vals, share.group - block * share.rows, share.rows, into=acc))
+        return xs, (sums / share.sizes[..., None, None]).astype(vals.dtype)
+
+    x, qm = means(x, "q", match.group)  # [B, rows, H, D]: this device's merged rows
+    x, km = means(x, "k", qm)
+    x, vm = means(x, "v", km)
+    return x, qm, km, vm
+
+
+def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Array, vm: jax.Array, match: Match,
+              share: MergedRows, plan: LayerPlan, config, state: State) -> tuple[Keys, State]:
+    """The keys of the layer: every merged row (`kv_mode` "all") or the fixed and dynamic
+    K/V slots (cached per band and tile), and with `n_dup` the protected dst once more,
+    un-merged, size 1 (the authors' artefact). Over devices, the keys are this device's
+    merged rows, those the layer does not keep masked out."""
+    comp, shards = config.compression, state.shards
+    ring = shards.sharded
+    b = km.shape[0]
+    own_rows = share.first + jnp.arange(share.rows)
+    if plan.kv_mode == "all":
+        kk, vv, g, valid = km, vm, (share.sizes if ring else match.sizes), None
+        if ring:
+            valid = jnp.broadcast_to(own_rows < plan.n_query, (b, share.rows))
+    else:
+        fixed = plan.fixed_kv
+        kv_key = None if plan.match_key is None else (plan.match_key, plan.tile)
+        if kv_key is not None and kv_key in state.kv:
+            idx, ok = state.kv[kv_key]
+        else:
+            idx, ok = slots = kv_lib.dynamic_slots(plan, comp, match, state.protected)
+            if kv_key is not None:
+                state = state._replace(kv={**state.kv, kv_key: slots})
+        sel = jnp.concatenate([jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size)), idx], axis=1)
+        valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+        if ring:  # this device's merged rows, the kept ones marked (the slots are distinct rows)
+            rel = sel - share.first  # (negative ones would wrap around in a scatter)
+            rel = jnp.where(valid & (rel >= 0) & (rel < share.rows), rel, share.rows)
+            valid = jnp.zeros((b, share.rows), bool).at[jnp.arange(b)[:, None], rel].set(True, mode="drop")
+            kk, vv, g = km, vm, share.sizes
+        else:
+            kk, vv = chunks.take_along(km, sel, axis=1), chunks.take_along(vm, sel, axis=1)
+            g = jnp.take_along_axis(match.sizes, sel, axis=1, mode="promise_in_bounds")
+
+    dup = None
+    if plan.n_dup:
+        protected_pos = state.protected_pos
+        dk, dv = rows_kv(p_block, x, protected_pos, pos, config, shards, plan.per_frame)
+        # only protected dst come twice: the authors drop protected src from both lists
+        dup_ok = jnp.take(jnp.asarray(plan.partition.is_dst), protected_pos, mode="clip")
+        if plan.kv_mode == "select" and not (comp.kv_protect_saliency and comp.protect == "saliency"):
+            dup_ok = dup_ok & jnp.take(jnp.asarray(plan.kv_keep), protected_pos, mode="clip")
+        dup = (dk, dv, jnp.ones(protected_pos.shape, jnp.float32), dup_ok)
+        if not ring:
+            kk = jnp.concatenate([kk, dk], axis=1)
+            vv = jnp.concatenate([vv, dv], axis=1)
+            g = jnp.concatenate([g, dup[2]], axis=1)
+            if valid is None:
+                valid = jnp.ones(g.shape[:1] + (g.shape[1] - protected_pos.shape[1],), bool)
+            valid = jnp.concatenate([valid, dup_ok], axis=1)
+            dup = None
+    return Keys(kk, vv, g, valid, dup), state
+
+
+def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards) -> jax.Array:
+    """The merged queries [B, rows, H, D] against the layer's keys, with the size bias
+    log g (and the invalid slots masked) -> [B, rows, H, D]."""
+    comp = config.compression
+
+    def bias(g, valid, masked):
+        if not plan.size_column and not masked:
+            return None
+        return log_sizes(g if comp.size_bias and plan.size_column else jnp.ones_like(g), valid if masked else None)
+
+    if shards.sharded:
+        # (the padding rows are always masked; log 1 = 0 keeps a layer without the size
+        # column exact)
+        dup = keys.dup
+        extra = () if dup is None else ((dup[0], dup[1], bias(dup[2], dup[3], plan.masked)),)
+        log_g = bias(keys.sizes, keys.valid, True)
+        # Q and K made after V's sums (else they sit through V's sums)
+        return ring_attention(with_dependency(qm, keys.v), with_dependency(keys.k, keys.v), keys.v, log_g, shards,
+                              extra)
+    log_g = bias(keys.sizes, keys.valid, plan.masked) if plan.size_column else None
+    check_shapes(plan, comp, qm.shape[1], keys.k, log_g)
+    return attention(qm, keys.k, keys.v, log_g)
+
+
+def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, config, shards: FrameShards
+                  ) -> jax.Array:
+    """The block around the merged attention: its hook unmerges the projected merged rows
+    out [B, rows, C], each token taking its group's row (over devices, the rows travel
+    around the ring)."""
+    dtype = config.compute_dtype
+    if not shards.sharded:
+        return layers.block_with_attention(p_block, x, lambda xc, gc: merge_lib.unmerge(out, gc), (share.group,),
+                                           dtype=dtype, projected=True)
+    return layers.block_with_attention(p_block, x, lambda xc, rc: rc, (shards.ring_take(out, share.group),),
+                                       dtype=dtype, projected=True)

@@ -1,0 +1,118 @@
+"""16-bit floats moved as their uint16 bits: the XLA:CPU workarounds, in one place.
+
+XLA:CPU has no bfloat16 dynamic slice, gather or collective: it converts the whole
+operand to float32 first (and, for a loop-invariant operand, hoists that copy out of the
+loop), and moves a bfloat16 collective in float32. Slicing, gathering or moving the bits
+is exact and converts only what is used. Why and what it saves: docs/memory_layout.md.
+
+    as_bits(op, x, *index)    op (a slice, gather or move of x) applied to x's bits
+    Bits16                    a 16-bit buffer held as bits (the kept layers, blocked K/V)
+    read_buffer(buf, op, ...) op on a plain array or a `Bits16` buffer
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvggt_jax.ops.ordering import zeros_from
+
+
+def is_16bit_float(x: jax.Array) -> bool:
+    return x.dtype.itemsize == 2 and jnp.issubdtype(x.dtype, jnp.floating)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def as_bits(op, x: jax.Array, *index) -> jax.Array:
+    """`op(x, *index)` (a slice, gather or move of x: a linear map) on x's uint16 bits.
+    The bitcast to integers has no derivative (JAX would silently give zero gradients
+    through it), so the JVP applies `op` to the tangent directly, which reverse mode
+    transposes (into a scatter-add / update of zeros)."""
+    bits = op(jax.lax.bitcast_convert_type(x, jnp.uint16), *index)
+    return jax.lax.bitcast_convert_type(bits, x.dtype)
+
+
+@as_bits.defjvp
+def _as_bits_jvp(op, primals, tangents):
+    x, *index = primals
+    return as_bits(op, x, *index), op(tangents[0], *index)
+
+
+@jax.tree_util.register_pytree_node_class
+class Bits16:
+    """A 16-bit float buffer held as its uint16 bits, for buffers a loop slices: a bit
+    view made at the slice would be hoisted out of the loop as a copy of the whole buffer.
+
+    Derivatives: bits have none, so the buffer carries a `shadow` of its float dtype
+    whose value is never used: writes and reads send their tangents through it (custom
+    JVPs). In a forward pass without derivatives the shadow is dead and XLA removes it."""
+
+    def __init__(self, bits: jax.Array, shadow: jax.Array):
+        self.bits, self.shadow = bits, shadow
+
+    @classmethod
+    def zeros_from(cls, shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> "Bits16":
+        return cls(zeros_from(shape, jnp.uint16, dep), zeros_from(shape, dtype, dep))
+
+    @classmethod
+    def of(cls, x: jax.Array) -> "Bits16":
+        """x (16-bit floats) as its bits, x itself the shadow (its derivatives)."""
+        return cls(jax.lax.bitcast_convert_type(jax.lax.stop_gradient(x), jnp.uint16), x)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.bits.shape
+
+    @property
+    def dtype(self):
+        return self.shadow.dtype
+
+    def update_index(self, x: jax.Array, index) -> "Bits16":
+        """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
+        return Bits16(*_store_bits(self.bits, self.shadow, x.astype(self.dtype), index))
+
+    def read(self, op, *index) -> jax.Array:
+        """op(buffer, *index) (slicing ops only) in the float dtype."""
+        return _load_bits(op, self.bits, self.shadow, *index)
+
+    def tree_flatten(self):
+        return (self.bits, self.shadow), None
+
+    @classmethod
+    def tree_unflatten(cls, _, children):
+        return cls(*children)
+
+
+def read_buffer(buf: "jax.Array | Bits16", op, *index) -> jax.Array:
+    """op(buf, *index) for a plain array or a `Bits16` buffer; op a plain lax slicing op
+    (for `Bits16` it is applied to the bits and to the tangents)."""
+    return buf.read(op, *index) if isinstance(buf, Bits16) else op(buf, *index)
+
+
+@jax.custom_jvp
+def _store_bits(bits, shadow, x, index):
+    return jax.lax.dynamic_update_index_in_dim(bits, jax.lax.bitcast_convert_type(x, jnp.uint16), index, 0), shadow
+
+
+@_store_bits.defjvp
+def _store_bits_jvp(primals, tangents):
+    bits, shadow, x, index = primals
+    _, shadow_dot, x_dot, _ = tangents
+    out = _store_bits(bits, shadow, x, index)
+    no_tangent = np.zeros(bits.shape, dtype=jax.dtypes.float0)
+    return out, (no_tangent, jax.lax.dynamic_update_index_in_dim(shadow_dot, x_dot.astype(shadow.dtype), index, 0))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _load_bits(op, bits, shadow, *index):
+    return jax.lax.bitcast_convert_type(op(bits, *index), shadow.dtype)
+
+
+@_load_bits.defjvp
+def _load_bits_jvp(op, primals, tangents):
+    bits, shadow, *index = primals
+    return _load_bits(op, bits, shadow, *index), op(tangents[1], *index)
