@@ -200,7 +200,7 @@ def test_bundled_demo_data_found():
 
 
 def test_select_frames():
-    from rvggt_jax.app.cli import select_frames
+    from rvggt_jax.app.options import select_frames
 
     paths = [Path(f"{i:02d}.png") for i in range(10)]
     assert select_frames(paths, None) == paths and select_frames(paths, 20) == paths

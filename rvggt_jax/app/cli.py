@@ -31,21 +31,9 @@ import sys
 from typing import Sequence
 
 from rvggt_jax.app.messages import CLIError, format_error, one_line
-from rvggt_jax.app.commands import (  # noqa: F401 - re-exported: the API of `rvggt_jax.app.cli` before the split
-    DEFAULT_CONF_THRESHOLD,
-    DEMO_IMAGES,
-    DEMO_WEIGHTS,
-    EXAMPLES_DIR,
-    PROG,
-    RANDOM_WEIGHTS_NOTICE,
-    ReconstructOptions,
-    demo,
-    enable_compilation_cache,
-    known_presets,
-    reconstruct_folder,
-    select_frames,
-    warn,
-)
+from rvggt_jax.app.commands import RANDOM_WEIGHTS_NOTICE, demo, reconstruct_folder
+from rvggt_jax.app.console import PROG
+from rvggt_jax.app.options import ReconstructOptions, known_presets
 
 
 

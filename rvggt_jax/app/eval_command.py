@@ -87,7 +87,9 @@ def _fail(msg: str):
 def run_eval_command(args: argparse.Namespace) -> list[dict]:
     """Execute a parsed `rvggt eval`; raises `rvggt_jax.app.messages.CLIError` on bad input."""
     from rvggt_jax.app.messages import one_line as _one_line
-    from rvggt_jax.app.commands import DEMO_WEIGHTS, enable_compilation_cache, known_presets
+    from rvggt_jax.app.commands import DEMO_WEIGHTS
+    from rvggt_jax.app.model_runner import enable_compilation_cache
+    from rvggt_jax.app.options import known_presets
     from rvggt_jax.eval.datasets import DatasetError
     from rvggt_jax.eval.protocols import AGAINST_HIGHER, AGAINST_METRICS, PROTOCOLS
     from rvggt_jax.eval.report import write_csv, write_markdown, write_plots

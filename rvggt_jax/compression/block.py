@@ -1,6 +1,6 @@
 """RegimeVGGT's global block: one global block under the configured compression.
 
-    state = init_state(config.compression, saliency, geometry, shards)   # once per forward
+    state = state.init_state(config.compression, saliency, geometry, shards)   # once per forward
     x, state = global_block(p_block, x, pos, layer, config, state)
 
 `layer` is a Python int: every layer has its own static plan (`plan.layer_plan`) and the
@@ -25,7 +25,6 @@ from rvggt_jax.compression.config import LayerKind
 from rvggt_jax.compression.kv_layer import kv_block
 from rvggt_jax.compression.merged_layer import merging_block
 from rvggt_jax.compression.plan import layer_plan
-from rvggt_jax.compression.state import State, init_state  # noqa: F401 - the state's two names, with the block
 from rvggt_jax.model import layers
 from rvggt_jax.model.global_block import dense_global_block
 from rvggt_jax.model.params import Params

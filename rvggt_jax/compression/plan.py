@@ -208,9 +208,9 @@ def padded_head_dim(d: int, size_column: bool, multiple: int) -> int:
     return int(math.ceil((d + 1) / multiple) * multiple)
 
 
-def check_shapes(plan: LayerPlan, comp, queries: int, keys: jax.Array, log_g) -> None:
-    """At trace time: the attention's queries, K/V slots and folded head dimension are the
-    plan's (what the cost model reads)."""
+def check_shapes(plan: LayerPlan, comp: CompressionConfig, queries: int, keys, log_g) -> None:
+    """At trace time: the attention's queries, K/V slots (keys [B, M, H, D]) and folded head
+    dimension (log_g: the size bias, or None) are the plan's (what the cost model reads)."""
     d = keys.shape[-1]
     want = (plan.n_query, plan.n_kv, padded_head_dim(d, plan.size_column, comp.head_pad_multiple))
     got = (queries, keys.shape[1], padded_head_dim(d, log_g is not None, comp.head_pad_multiple))

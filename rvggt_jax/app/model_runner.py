@@ -1,0 +1,98 @@
+"""The model side of the commands: load a checkpoint (a local path or a hub repo id),
+keep compiled programs across runs, run the forward (on one device or a "frames" mesh),
+each failure a one-line `CLIError` naming the checkpoint."""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+from rvggt_jax.app.console import say, warn
+from rvggt_jax.app.messages import CLIError, one_line
+
+
+def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None):
+    """`(params, config)` of a checkpoint (local path or hub repo id), without the
+    track head (unused here); `name` is how messages call it (default: `weights`).
+    Warnings of the loader become `rvggt: warning:` lines."""
+    from rvggt_jax.weights.hub import HubError, resolve_checkpoint
+
+    name = weights if name is None else name
+    try:
+        local = resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
+    except HubError as e:
+        raise CLIError(str(e)) from None
+    if not Path(local).exists():
+        raise CLIError(f"checkpoint not found: {name}")
+    try:
+        from rvggt_jax.weights.checkpoint import load_checkpoint
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            loaded = load_checkpoint(str(local), skip_track=True, progress=not quiet)
+        for w in caught:
+            if issubclass(w.category, UserWarning):
+                warn(str(w.message))
+        return loaded
+    except Exception as e:
+        if type(e).__name__ == "CheckpointError":
+            raise CLIError(f"checkpoint {name} does not fit the model: {e}") from None
+        if type(e).__name__ == "CheckpointFileError":
+            raise CLIError(str(e)) from None
+        raise CLIError(f"cannot load checkpoint {name}: {one_line(e)}") from None
+
+
+def enable_compilation_cache() -> str | None:
+    """Keep compiled programs across runs (the first run of a shape compiles for a while).
+
+    Directory: $RVGGT_CACHE_DIR, else $XDG_CACHE_HOME/rvggt-jax/xla (~/.cache/...);
+    RVGGT_CACHE_DIR=off disables it; a cache directory already configured for JAX
+    (JAX_COMPILATION_CACHE_DIR) is left alone. Returns the directory in use, if any."""
+    import jax
+
+    try:
+        current = jax.config.jax_compilation_cache_dir
+        if current:
+            return current
+        d = os.environ.get("RVGGT_CACHE_DIR")
+        if d is None:
+            base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+            d = os.path.join(base, "rvggt-jax", "xla")
+        if d.strip().lower() in ("", "0", "off", "none", "false"):
+            return None
+        os.makedirs(d, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", d)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+        return d
+    except Exception:  # an unwritable cache only costs time
+        return None
+
+
+def run_model(params, images, config, weights, compiled=None, mesh=None) -> dict:
+    """`rvggt_jax.app.pipeline.run_model` with its failures as one-line `CLIError`s naming `weights`."""
+    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.app.pipeline import run_model as forward
+
+    enable_compilation_cache()
+    try:
+        return forward(params, images, config, compiled, mesh)
+    except InputError as e:
+        raise CLIError(f"checkpoint {weights} does not fit the model: {one_line(e)}") from None
+    except ValueError as e:  # a head missing
+        raise CLIError(f"checkpoint {weights}: {one_line(e)}") from None
+
+
+def devices_mesh(devices: int | None):
+    """The "frames" mesh of `devices` local devices (None: all, when there are several),
+    or None for one device."""
+    import jax
+
+    from rvggt_jax.parallel.sharded import frames_mesh
+
+    n = len(jax.local_devices()) if devices is None else devices
+    try:
+        mesh = frames_mesh(n)
+    except ValueError as e:
+        raise CLIError(f"--devices {n}: {e}") from None
+    return None if n == 1 else mesh

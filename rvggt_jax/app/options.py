@@ -1,0 +1,113 @@
+"""The options of `rvggt reconstruct` and `rvggt demo` (`ReconstructOptions`), with the
+command line's defaults and the checks that run before anything slow."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Sequence
+
+from rvggt_jax.app.messages import CLIError
+
+DEFAULT_CONF_THRESHOLD = "50%"
+
+
+def known_presets() -> tuple[str, ...]:
+    from rvggt_jax.compression.config import PRESETS
+
+    return tuple(PRESETS)
+
+
+def select_frames(paths: Sequence[Path], max_frames: int | None) -> list[Path]:
+    """At most `max_frames` of `paths`, evenly spaced over the sorted list, first and
+    last included (all of them when `max_frames` is None or large enough)."""
+    paths = list(paths)
+    if max_frames is None or len(paths) <= max_frames:
+        return paths
+    if max_frames == 1:
+        return paths[:1]
+    n = len(paths)
+    idx = sorted({round(i * (n - 1) / (max_frames - 1)) for i in range(max_frames)})
+    return [paths[i] for i in idx]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ReconstructOptions:
+    """How `rvggt reconstruct` (and `rvggt demo`) run: the command line's options, with its
+    defaults. The CLI builds one from the parsed arguments; `reconstruct_folder` checks it
+    (`check`) before it looks at anything else.
+
+    Inputs:
+      mode: "crop" (width 518, height centre-cropped to <= 518) or "pad" (longest side
+        518, white-padded to square).
+      max_frames: use at most this many images (or video frames), evenly spaced; None: all.
+      every / fps: a video's frames to keep, every N-th or F per second (at most one of
+        them; neither: 1 per second). Refused for a folder of images.
+      skip_bad: leave out images that cannot be read (a warning names each) instead of
+        stopping at the first.
+      exif_orientation: apply the EXIF orientation of photos (False: read them as stored,
+        upstream's behaviour).
+    Model:
+      preset: compression preset of the global attention (`known_presets()`); None: the
+        checkpoint's.
+      dtype: the aggregator's compute dtype, "float32" or "bfloat16" (the heads stay float32).
+      devices: split the frames over this many local devices; None: all of them when
+        there are several.
+    Outputs:
+      conf_threshold: keep points whose confidence is >= this number, or, written "P%",
+        at or above the P-th percentile of all confidences ("0%" keeps every point).
+      points_from: the point cloud from the "depth" maps unprojected with the predicted
+        cameras or from the "pointmap" head.
+      max_points: cap on the points written to points.ply (a random subset); None: no cap.
+      all_colmap_points: write every point of points.ply to sparse/points3D.txt (default:
+        a random subset of at most 100000).
+      overwrite: reuse a non-empty output folder, deleting the files the previous rvggt run
+        there wrote (its manifest) and nothing else.
+      quiet: no progress bars or messages (errors and warnings only).
+    """
+
+    mode: str = "crop"
+    max_frames: int | None = None
+    every: int | None = None
+    fps: float | None = None
+    skip_bad: bool = False
+    exif_orientation: bool = True
+    preset: str | None = None
+    dtype: str = "float32"
+    devices: int | None = None
+    conf_threshold: str | float = DEFAULT_CONF_THRESHOLD
+    points_from: str = "depth"
+    max_points: int | None = 2_000_000
+    all_colmap_points: bool = False
+    overwrite: bool = False
+    quiet: bool = False
+
+    def check(self) -> None:
+        """Raise `CLIError` (one line, naming the command-line option) for a value out of
+        range, before any input is read."""
+        import math
+
+        from rvggt_jax.app.pipeline import parse_threshold
+
+        if self.mode not in ("crop", "pad"):
+            raise CLIError(f"unknown mode {self.mode!r}; use crop or pad")
+        try:
+            parse_threshold(self.conf_threshold)
+        except ValueError as e:
+            raise CLIError(str(e)) from None
+        if self.max_frames is not None and self.max_frames < 1:
+            raise CLIError(f"--max-frames must be at least 1; got {self.max_frames}")
+        if self.preset is not None and self.preset not in known_presets():
+            raise CLIError(f"unknown preset {self.preset!r}; known presets: {', '.join(known_presets())}")
+        if self.dtype not in ("float32", "bfloat16"):
+            raise CLIError(f"unknown dtype {self.dtype!r}; use float32 or bfloat16")
+        if self.max_points is not None and self.max_points < 1:
+            raise CLIError(f"--max-points must be at least 1; got {self.max_points}")
+        if self.points_from not in ("depth", "pointmap"):
+            raise CLIError(f"unknown point source {self.points_from!r}; use depth or pointmap")
+        if self.every is not None and self.fps is not None:
+            raise CLIError("give --every or --fps, not both")
+        if self.every is not None and self.every < 1:
+            raise CLIError(f"--every must be at least 1; got {self.every}")
+        if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
+            raise CLIError(f"--fps must be a positive number; got {self.fps}")
