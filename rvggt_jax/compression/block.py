@@ -25,6 +25,7 @@ from rvggt_jax.compression.config import LayerKind
 from rvggt_jax.compression.kv_layer import kv_block
 from rvggt_jax.compression.merged_layer import merging_block
 from rvggt_jax.compression.plan import layer_plan
+from rvggt_jax.compression.state import State
 from rvggt_jax.model import layers
 from rvggt_jax.model.global_block import dense_global_block
 from rvggt_jax.model.params import Params
