@@ -22,9 +22,9 @@ from rvggt_jax.weights import (
     find_rule,
     flatten_params,
     load_safetensors,
-    main,
     upstream_state_dict_shapes,
 )
+from rvggt_jax.convert import main
 from rvggt_jax.weights.rules import apply_rule, converted_shapes, matching_rules
 from rvggt_jax.weights.checkpoint import load_pretrained, save_orbax
 from rvggt_jax.config import VGGTConfig
