@@ -12,11 +12,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests._readers import read_colmap_text, read_depth_png, read_ply
-
-REPO = Path(__file__).resolve().parents[1]
-TINY = REPO / "tests" / "data" / "vggt_tiny"
-DEMO_IMAGES = REPO / "rvggt_jax" / "examples_data" / "images"
+from tests.helpers import DEMO_IMAGES, REPO, TINY
+from tests.helpers.readers import read_colmap_text, read_depth_png, read_ply
 
 
 _CACHE = {}

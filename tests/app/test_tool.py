@@ -15,10 +15,7 @@ import pytest
 from PIL import Image
 
 from rvggt_jax.io.ply import read_ply_properties
-
-REPO = Path(__file__).resolve().parents[1]
-TINY = REPO / "tests" / "data" / "vggt_tiny"
-DEMO_IMAGES = REPO / "rvggt_jax" / "examples_data" / "images"
+from tests.helpers import DEMO_IMAGES, REPO, TINY
 
 
 def make_video(path: Path, seconds: float = 4.0, fps: int = 10, w: int = 160, h: int = 120) -> Path:
@@ -119,7 +116,7 @@ def test_video_reconstruct_glb_and_ply_confidence(tmp_path, ckpt):
 
 
 def test_phone_photos_16bit_and_skip_bad(tmp_path, capsys, ckpt):
-    from tests.test_inputs import _gradient16, _rotated_jpeg
+    from tests.helpers.image_files import gradient16 as _gradient16, rotated_jpeg as _rotated_jpeg
 
     src = tmp_path / "imgs"
     src.mkdir()
@@ -177,7 +174,7 @@ def test_reused_out_dir_needs_overwrite_and_keeps_user_files(tmp_path, ckpt):
 def test_hub_repo_id_weights(tmp_path, monkeypatch):
     import huggingface_hub.constants as c
 
-    from tests.test_hub import populate_hub_cache
+    from tests.helpers.hub_cache import populate_hub_cache
 
     hf_home = tmp_path / "hf"
     monkeypatch.setenv("RVGGT_WEIGHTS_DIR", str(tmp_path / "converted"))

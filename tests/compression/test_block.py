@@ -9,11 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import rel_err
+from tests.helpers import rel_err
 from rvggt_jax.model import layers
 from rvggt_jax.compression import PRESETS, Geometry, global_block, init_state, layer_plan
 from rvggt_jax.compression.partition import kv_static_keep, partition, stride_protected
-from tests._compression_reference import (
+from tests.helpers.compression_reference import (
     global_positions,
     kept_by_rule,
     random_block_params,
@@ -319,7 +319,7 @@ def test_global_block_computes_its_static_plan_once(block_params):
 
 @pytest.mark.parametrize("name", ["regime", "regime_paper", "fastvggt", "avggt"])
 def test_one_compilation_per_input_shape(block_params, name):
-    # (every preset through the whole model: tests/test_compression_e2e.py)
+    # (every preset through the whole model: tests/compression/test_e2e.py)
     s, h, w = 3, 4, 5
     x1, sal1 = _data(1, 1, s, h, w)
     x2, sal2 = _data(2, 1, s, h, w)

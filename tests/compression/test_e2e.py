@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import rel_err
+from tests.helpers import rel_err
 from rvggt_jax import rvggt_forward
 from rvggt_jax.compression import PRESETS
 
@@ -58,7 +58,7 @@ def test_every_preset_compiles_once_and_is_finite(tiny, golden, dense_out, name)
 def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
     # The aggregator runs each band as two lax.scans (the layer computing the band's match,
     # then the layers reusing it); the same layers one by one through `global_block`
-    # (checked against the float64 reference of the method in test_compression_block.py)
+    # (checked against the float64 reference of the method in tests/compression/test_block.py)
     # must agree.
     from rvggt_jax import compression
     from rvggt_jax.model import layers

@@ -10,7 +10,7 @@ from rvggt_jax.compression import make_compression
 from rvggt_jax.compression import merge as merge_lib
 from rvggt_jax.compression.partition import Geometry, partition
 from rvggt_jax.compression.plan import layer_plan
-from tests._compression_reference import identity_match, reference_match
+from tests.helpers.compression_reference import identity_match, reference_match
 
 S, H, W, NS = 4, 5, 7, 5
 L = NS + H * W
@@ -127,7 +127,7 @@ def test_dynamic_kv_slots_hold_exactly_the_kept_unmerged_src():
 def test_band_cache_reuse_and_recompute():
     from rvggt_jax.compression import global_block, init_state
     from rvggt_jax.config import VGGTConfig
-    from tests._compression_reference import global_positions, random_block_params
+    from tests.helpers.compression_reference import global_positions, random_block_params
 
     cfg = VGGTConfig(embed_dim=32, num_heads=2).with_compression("regime")
     p = random_block_params(jax.random.PRNGKey(0), 32, 2)

@@ -1,7 +1,7 @@
 """Test helpers: random block params and an independent float64 numpy reference of the
 compressed global block (variable-size sets, explicit additive log-size bias, no static
 padding, no caching), written from the method's definition rather than from the
-static-shape code it checks. Only tests use them, so they live under tests/."""
+static-shape code it checks. Only tests use them, so they live under tests/helpers/."""
 
 from __future__ import annotations
 

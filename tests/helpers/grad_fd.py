@@ -1,5 +1,5 @@
 """Float64 finite-difference check of `jax.grad` through `rvggt_forward`, run as a
-subprocess by tests/test_grad.py (x64 must be set before JAX starts).
+subprocess by tests/model/test_grad.py (x64 must be set before JAX starts).
 
 The model computes in float32 by design (norms, softmax and matmul accumulation name
 `jnp.float32`), which limits central differences to ~1e-3. To check the *same code* in
@@ -8,11 +8,12 @@ place the model names float32, its default arguments included) and the aggregato
 compute dtype to float64; parameters and images are float64 too. Nothing in the library
 changes. Prints one JSON line {preset: relative error}.
 
-    JAX_ENABLE_X64=1 python tests/_grad_fd.py dense regime
+    JAX_ENABLE_X64=1 python tests/helpers/grad_fd.py dense regime
 """
 
 import json
 import sys
+from pathlib import Path
 
 import jax
 
@@ -23,8 +24,8 @@ jnp.float32 = jnp.float64  # before rvggt_jax is imported (see the docstring)
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _micro import micro_config  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository (run by path)
+from tests.helpers.micro import micro_config  # noqa: E402
 
 import rvggt_jax  # noqa: E402
 from rvggt_jax.config import VGGTConfig  # noqa: E402

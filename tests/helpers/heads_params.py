@@ -12,12 +12,11 @@ from safetensors.numpy import load_file
 
 from rvggt_jax.weights.converter import load_safetensors
 from rvggt_jax.config import VGGTConfig
-
-DATA = Path(__file__).parent / "data" / "vggt_tiny"
+from tests.helpers.paths import TINY
 
 
 def load_io() -> dict[str, np.ndarray]:
-    return load_file(str(DATA / "io.safetensors"))
+    return load_file(str(TINY / "io.safetensors"))
 
 
 @lru_cache(maxsize=4)
@@ -25,7 +24,7 @@ def _converted(path: Path) -> dict[str, Any]:
     return load_safetensors(path, VGGTConfig.from_json(path.parent / "config.json"))
 
 
-def load_head_params(prefix: str, conv_transpose: Iterable[str] = (), path: Path = DATA / "model.safetensors"
+def load_head_params(prefix: str, conv_transpose: Iterable[str] = (), path: Path = TINY / "model.safetensors"
                      ) -> dict[str, Any]:
     """The converted subtree at dotted `prefix` (e.g. "track_head.feature_extractor").
     `conv_transpose` is accepted for old call sites; the converter's rules know them."""
@@ -35,5 +34,5 @@ def load_head_params(prefix: str, conv_transpose: Iterable[str] = (), path: Path
     return tree
 
 
-def load_track_params(path: Path = DATA / "model.safetensors", prefix: str = "track_head") -> dict[str, Any]:
+def load_track_params(path: Path = TINY / "model.safetensors", prefix: str = "track_head") -> dict[str, Any]:
     return load_head_params(prefix, path=path)

@@ -1,4 +1,4 @@
-"""The sharded-forward checks, run by tests/test_sharded.py in a subprocess of its own:
+"""The sharded-forward checks, run by tests/parallel/test_sharded.py in a subprocess of its own:
 XLA's host platform has to be told to make 4 CPU devices before JAX starts.
 
 Prints one JSON object: per check, the measured errors and facts the test asserts on.
@@ -12,6 +12,8 @@ os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_p
 
 from pathlib import Path  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository (run by path)
+
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -21,8 +23,8 @@ import rvggt_jax  # noqa: E402
 from rvggt_jax.ops.shards import FrameShards  # noqa: E402
 from rvggt_jax.model.heads.tracker import track_predictor  # noqa: E402
 from rvggt_jax.parallel.sharded import frames_mesh, sharded_forward  # noqa: E402
+from tests.helpers.paths import TINY  # noqa: E402
 
-TINY = Path(__file__).parent / "data" / "vggt_tiny"
 H, W = 42, 56  # 3 x 4 patches: every compression step has something to do
 TRACKED = ("track", "vis", "conf")
 
@@ -128,10 +130,10 @@ def main() -> None:
     tick("tracker")
 
     # XLA's plan of the sharded program on abstract inputs (nothing runs): per device, the
-    # working memory of test_memory.py's long sequence (200 frames, width 256) split 4
-    # ways against one device's
+    # working memory of tests/planning/test_memory.py's long sequence (200 frames, width
+    # 256) split 4 ways against one device's
     from rvggt_jax.planning.memory import memory_report
-    from test_memory import BASE, H as MH, S as MS, W as MW
+    from tests.helpers.long_sequence import BASE, H as MH, S as MS, W as MW
 
     cfg = BASE.with_compression("regime")
     one = memory_report(cfg, MS, MH, MW)

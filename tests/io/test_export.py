@@ -17,7 +17,7 @@ from rvggt_jax.io.images import ImageInfo
 from rvggt_jax.io.plots import write_trajectory_png
 from rvggt_jax.io.ply import write_ply
 from rvggt_jax.app.pipeline import build_reconstruction, parse_threshold, select_points
-from tests._readers import read_colmap_text, read_depth_png, read_ply
+from tests.helpers.readers import read_colmap_text, read_depth_png, read_ply
 
 
 def _random_rotation(rng):

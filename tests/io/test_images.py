@@ -2,15 +2,12 @@
 (fixture tests/data/preprocess, made with upstream + torch), plus errors and the
 per-image pixel maps."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from PIL import Image
 
 from rvggt_jax.io import ImageLoadError, find_images, load_images, load_images_with_info, preprocessed_size
-
-DATA = Path(__file__).parent / "data" / "preprocess"
+from tests.helpers import PREPROCESS as DATA
 
 
 def _fixture():

@@ -6,11 +6,7 @@ import pytest
 from PIL import Image
 
 from rvggt_jax.io import ImageLoadError, load_images, load_images_with_info
-
-
-def _gradient16(h=120, w=160):
-    """A 16-bit horizontal ramp 0 .. 65535 (left to right)."""
-    return np.tile(np.linspace(0, 65535, w).round().astype(np.uint16), (h, 1))
+from tests.helpers.image_files import gradient16 as _gradient16, rotated_jpeg as _rotated_jpeg
 
 
 def test_16bit_png_is_read_by_range(tmp_path):
@@ -41,19 +37,6 @@ def test_float_image_in_unit_range_kept(tmp_path):
     Image.fromarray(a).save(p)
     x = load_images([p])
     assert abs(float(x.mean()) - 128 / 255) < 2 / 255
-
-
-def _rotated_jpeg(path):
-    """An image stored 120 wide x 160 high with EXIF orientation 6 (rotate 90 degrees
-    clockwise to view): upright it is 160 x 120 with a red band at the top."""
-    up = np.zeros((120, 160, 3), np.uint8)
-    up[:30] = (255, 0, 0)  # red band at the top of the upright picture
-    stored = np.rot90(up, k=1).copy()  # what a camera held sideways stores (120 wide)
-    im = Image.fromarray(stored)
-    exif = Image.Exif()
-    exif[0x0112] = 6
-    im.save(path, exif=exif, quality=95)
-    return up
 
 
 def test_exif_orientation_applied(tmp_path):

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import rel_err
+from tests.helpers import rel_err
 from rvggt_jax import rvggt_forward
 from rvggt_jax.weights.checkpoint import cast_params
 

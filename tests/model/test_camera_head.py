@@ -11,15 +11,15 @@ import pytest
 
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model.heads.camera import activate_pose, camera_head
-from tests._heads_params import DATA, load_head_params, load_io
-from conftest import rel_err
+from tests.helpers import TINY, rel_err
+from tests.helpers.heads_params import load_head_params, load_io
 
 RTOL = 1e-4
 
 
 @pytest.fixture(scope="module")
 def setup():
-    config = VGGTConfig.from_json(DATA / "config.json")
+    config = VGGTConfig.from_json(TINY / "config.json")
     io = load_io()
     params = load_head_params("camera_head")
     last = io[f"aggregated_{config.depth - 1:02d}"]

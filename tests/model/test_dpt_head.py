@@ -9,8 +9,8 @@ import pytest
 
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model.heads import dpt
-from tests._heads_params import DATA, load_head_params, load_io
-from conftest import rel_err
+from tests.helpers import TINY, rel_err
+from tests.helpers.heads_params import load_head_params, load_io
 
 RTOL = 1e-4
 TRANSPOSED = ("resize_layers.0", "resize_layers.1")
@@ -18,7 +18,7 @@ TRANSPOSED = ("resize_layers.0", "resize_layers.1")
 
 @pytest.fixture(scope="module")
 def setup():
-    config = VGGTConfig.from_json(DATA / "config.json")
+    config = VGGTConfig.from_json(TINY / "config.json")
     io = load_io()
     # A dict of only the layers the head reads, as the model keeps them.
     aggregated = {i: jnp.asarray(io[f"aggregated_{i:02d}"]) for i in config.dpt_head.intermediate_layer_idx}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import rvggt_jax
-from conftest import rel_err
+from tests.helpers import rel_err
 from rvggt_jax import InputError, rvggt_forward
 
 TOL = 1e-4
@@ -56,9 +56,9 @@ def test_track_head(outputs, golden, key):
     # The tracker's flow embedding (sin/cos up to ~1000 rad per pixel) amplifies float32
     # rounding ~1000x per refinement step: upstream itself moves by up to 3e-3 (track),
     # 4e-2 (vis), 1e-2 (conf) under 1e-7 input noise or another torch thread count.
-    # Early iterations are checked at 1e-4 in test_track_head.py; the last one here at
+    # Early iterations are checked at 1e-4 in tests/model/test_track_head.py; the last one here at
     # about twice upstream's own spread.
-    from test_track_head import FINAL_ITER_RTOL
+    from tests.helpers.tolerances import FINAL_ITER_RTOL
 
     assert rel_err(outputs[key], golden[key]) <= FINAL_ITER_RTOL[key]
 

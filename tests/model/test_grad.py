@@ -9,7 +9,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -20,7 +19,8 @@ import rvggt_jax
 from rvggt_jax.ops import chunks
 from rvggt_jax.compression.config import PRESETS
 from rvggt_jax.model.forward import rvggt_forward
-from tests._micro import micro_config
+from tests.helpers import HELPERS, REPO
+from tests.helpers.micro import micro_config
 
 # dense and regime always; every other preset compiles one more gradient (~20 s each on
 # 2 cores): RVGGT_TEST_ALL_PRESETS=1 runs them too
@@ -60,11 +60,11 @@ def test_gradients_are_finite_and_reach_every_parameter(setup, preset):
 
 def test_float64_finite_differences():
     """Directional derivative of jax.grad vs central differences, float64 (a subprocess:
-    x64 must be on before JAX starts; see tests/_grad_fd.py), relative error <= 1e-5."""
-    script = Path(__file__).with_name("_grad_fd.py")
+    x64 must be on before JAX starts; see tests/helpers/grad_fd.py), relative error <= 1e-5."""
+    script = HELPERS / "grad_fd.py"
     env = dict(os.environ, JAX_ENABLE_X64="1")
     r = subprocess.run([sys.executable, str(script), *DEFAULT_PRESETS], capture_output=True, text=True, env=env,
-                       cwd=Path(__file__).parent.parent, timeout=900)
+                       cwd=REPO, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     res = json.loads(r.stdout.strip().splitlines()[-1])
     assert set(res) == set(DEFAULT_PRESETS)

@@ -1,9 +1,7 @@
-"""Building blocks: the float64 attention reference shared by the attention tests; mixed
-precision of the linear / norm / MLP pieces; row-chunked per-token work."""
+"""Building blocks: mixed precision of the linear / norm / MLP pieces; row-chunked per-token
+work."""
 
 from __future__ import annotations
-
-import math
 
 import jax
 import jax.numpy as jnp
@@ -13,18 +11,6 @@ import pytest
 from rvggt_jax.ops import chunks
 
 from rvggt_jax.model import layers
-
-
-def _reference(q, k, v, bias=None):
-    """softmax(q k^T / sqrt(d) + bias) v in float64 numpy, upstream's [B, H, N, D] layout."""
-    q, k, v = (np.asarray(a, np.float64).transpose(0, 2, 1, 3) for a in (q, k, v))
-    logits = q @ k.transpose(0, 1, 3, 2) / math.sqrt(q.shape[-1])
-    if bias is not None:
-        logits = logits + np.asarray(bias, np.float64)
-    p = np.exp(logits - logits.max(-1, keepdims=True))
-    return ((p / p.sum(-1, keepdims=True)) @ v).transpose(0, 2, 1, 3)
-
-
 
 
 def test_linear_computes_in_the_input_dtype_with_float32_accumulation():

@@ -19,7 +19,8 @@ from rvggt_jax.config import DPTHeadConfig, TrackHeadConfig, VGGTConfig
 from rvggt_jax.model.initializers import BLOCK, InitSpec, draw
 from rvggt_jax.model.forward import rvggt_forward
 from rvggt_jax.model.modules import VGGT, Aggregator
-from tests._micro import micro_config
+from tests.helpers import TINY
+from tests.helpers.micro import micro_config
 
 KEY = jax.random.PRNGKey(0)
 
@@ -46,7 +47,7 @@ def micro():
 def test_init_tree_is_the_converter_tree(layout):
     """Abstract only (jax.eval_shape): nothing of the 1B layout is allocated."""
     if layout == "tiny":
-        config = VGGTConfig.from_json("tests/data/vggt_tiny/config.json")
+        config = VGGTConfig.from_json(TINY / "config.json")
     else:
         config = _hidden_layout() if layout == "hidden" else VGGTConfig.vggt_1b()
     got = jax.eval_shape(rvggt_jax.init_params, config, KEY)

@@ -4,7 +4,7 @@ position-table interpolation against torch's antialiased bicubic."""
 import numpy as np
 import pytest
 
-from conftest import DATA, rel_err
+from tests.helpers import DATA, rel_err
 from rvggt_jax.model.patch_embed import bicubic_aa_matrix, interpolate_pos_embed
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax.ops import attention as attn
-from test_layers import _reference
+from tests.helpers.attention_reference import reference_attention
 
 
 def _qkv(b=2, nq=37, nk=45, h=3, d=8, dv=8, seed=0):
@@ -25,7 +25,7 @@ def _qkv(b=2, nq=37, nk=45, h=3, d=8, dv=8, seed=0):
 
 
 def _ref(q, k, v, bias=None):
-    return _reference(q, k, v, None if bias is None else np.asarray(bias)[:, None, None, :])
+    return reference_attention(q, k, v, None if bias is None else np.asarray(bias)[:, None, None, :])
 
 
 @pytest.mark.parametrize("block_bytes", [None, 4096, 40 * 4 * 3, 1])

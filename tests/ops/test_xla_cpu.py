@@ -6,13 +6,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
-
 import pytest
 
 from rvggt_jax.ops import xla_cpu
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.helpers.paths import REPO as ROOT
 
 PROBE = """
 import {first}

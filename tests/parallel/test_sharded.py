@@ -1,7 +1,7 @@
 """Frame-sharded forward (`rvggt_jax.sharded_forward`) against the single-device forward on
 4 and 3 host CPU devices (uneven frames), dense and compressed, with the track head.
 
-The checks run in one subprocess (tests/_sharded_worker.py, started by conftest.py when
+The checks run in one subprocess (tests/helpers/sharded_worker.py, started by conftest.py when
 the session begins, so that it compiles alongside the other tests): the device count is
 fixed when JAX starts. Tolerance: 1e-5 relative (float32); the split changes matmul shapes
 (each device projects its own frames), hence float summation order, nothing else.
@@ -17,7 +17,7 @@ wrong frame 0, is off by far more)."""
 import json
 
 import pytest
-from conftest import sharded_worker_result
+from tests.helpers.sharded import sharded_worker_result
 
 TOL = 1e-5
 
@@ -86,7 +86,7 @@ def test_mesh_without_frames_axis(report):
 
 
 def test_per_device_memory_split(report):
-    """XLA's plan (abstract inputs, compile only) of test_memory.py's 200 regime frames
+    """XLA's plan (abstract inputs, compile only) of tests/planning/test_memory.py's 200 regime frames
     over 4 devices: each device's temporaries and outputs under 0.4x of the single
     device's (1/4 of the per-frame work plus the exchanged blocks; measured 0.28x)."""
     plan = report["plan"]

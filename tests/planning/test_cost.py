@@ -1,5 +1,5 @@
 """The cost model's bookkeeping (its agreement with the traced shapes is in
-test_compression_block.py::test_cost_model_agrees_with_traced_shapes)."""
+tests/compression/test_block.py::test_cost_model_agrees_with_traced_shapes)."""
 
 import pytest
 

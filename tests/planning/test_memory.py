@@ -10,13 +10,8 @@ import dataclasses
 import pytest
 
 import rvggt_jax
-from rvggt_jax.config import CameraHeadConfig, DinoConfig, DPTHeadConfig, VGGTConfig
 from rvggt_jax.model.forward import InputError
-
-BASE = VGGTConfig(embed_dim=256, num_heads=4, dino=DinoConfig(depth=1, num_heads=4),
-                  camera_head=CameraHeadConfig(num_heads=4, trunk_depth=1),
-                  dpt_head=DPTHeadConfig(features=16, out_channels=(8, 16, 32, 32)), enable_track=False)
-S, H, W = 200, 168, 224
+from tests.helpers.long_sequence import BASE, H, S, W
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import pytest
 import rvggt_jax
 from rvggt_jax import train
 from rvggt_jax.synthetic import make_scene, write_scene
-from tests._micro import micro_config
+from tests.helpers.micro import micro_config
 
 SIZE = (28, 42)
 FRAMES = 3

@@ -4,15 +4,13 @@ download, a PyTorch .pt; and the one error format (`rvggt: error:` + indented de
 import json
 import shutil
 import warnings
-from pathlib import Path
 
 import pytest
 
 from rvggt_jax.app import cli
 from rvggt_jax.weights.checkpoint import CheckpointFileError, ConfigInferredWarning, config_for_safetensors
 from rvggt_jax.config import VGGTConfig
-
-TINY = Path(__file__).parent / "data" / "vggt_tiny"
+from tests.helpers import TINY
 
 
 def run(capsys, *argv):

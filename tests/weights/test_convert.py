@@ -28,10 +28,9 @@ from rvggt_jax.convert import main
 from rvggt_jax.weights.rules import apply_rule, converted_shapes, matching_rules
 from rvggt_jax.weights.checkpoint import load_pretrained, save_orbax
 from rvggt_jax.config import VGGTConfig
+from tests.helpers import DATA, TINY as TINY_DIR
 
-DATA = Path(__file__).parent / "data"
 MANIFEST = DATA / "vggt_1b_manifest.json"
-TINY_DIR = DATA / "vggt_tiny"
 TINY_ST = TINY_DIR / "model.safetensors"
 
 

@@ -2,25 +2,12 @@
 huggingface_hub lays it out, holding the tiny test checkpoint (never the network)."""
 
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-TINY = Path(__file__).parent / "data" / "vggt_tiny"
-COMMIT = "0123456789abcdef0123456789abcdef01234567"
-
-
-def populate_hub_cache(hf_home: Path, repo_id: str, files=("model.safetensors", "config.json")) -> Path:
-    """HF_HOME/hub/models--owner--name/{refs/main, snapshots/<commit>/...}, as a download leaves it."""
-    repo = hf_home / "hub" / ("models--" + repo_id.replace("/", "--"))
-    snap = repo / "snapshots" / COMMIT
-    snap.mkdir(parents=True)
-    (repo / "refs").mkdir()
-    (repo / "refs" / "main").write_text(COMMIT)
-    for f in files:
-        shutil.copy(TINY / f, snap / f)
-    return repo
+from tests.helpers import TINY
+from tests.helpers.hub_cache import COMMIT, populate_hub_cache
 
 
 @pytest.fixture
