@@ -21,6 +21,30 @@ def dense_out(tiny, golden):
     return jax.tree.map(np.asarray, jax.jit(rvggt_forward)(params, golden["images"], config))
 
 
+@pytest.fixture(scope="module")
+def preset_forward(tiny, golden):
+    """A preset's forward, compiled once for the module: name -> (the jitted forward, its
+    traces, its outputs on the fixture's images). The preset test runs it on a second image
+    set; the long-sequence test takes its outputs as the reference (the same program)."""
+    params, config = tiny
+    runs = {}
+
+    def run(name):
+        if name not in runs:
+            cfg = config.with_compression(name)
+            traces = []
+
+            def forward(p, x):
+                traces.append(1)
+                return rvggt_forward(p, x, cfg)
+
+            fwd = jax.jit(forward)
+            runs[name] = fwd, traces, jax.tree.map(np.asarray, fwd(params, golden["images"]))
+        return runs[name]
+
+    return run
+
+
 def test_regime_without_compression_equals_dense(tiny, golden, dense_out):
     params, config = tiny
     cfg = config.with_compression("regime", merge_ratio=(0.0, 0.0, 0.0), kv_sigma=(1.0, 1.0, 1.0))
@@ -32,19 +56,11 @@ def test_regime_without_compression_equals_dense(tiny, golden, dense_out):
 
 
 @pytest.mark.parametrize("name", [p for p in PRESETS if p != "dense"])
-def test_every_preset_compiles_once_and_is_finite(tiny, golden, dense_out, name):
+def test_every_preset_compiles_once_and_is_finite(tiny, golden, dense_out, preset_forward, name):
     params, config = tiny
-    cfg = config.with_compression(name)
     images = golden["images"]
     other = np.ascontiguousarray(images[..., ::-1, :])  # another image set of the same shape
-    traces = []
-
-    def forward(p, x):
-        traces.append(1)
-        return rvggt_forward(p, x, cfg)
-
-    fwd = jax.jit(forward)
-    a = jax.tree.map(np.asarray, fwd(params, images))
+    fwd, traces, a = preset_forward(name)  # (a = fwd(params, images))
     b = jax.tree.map(np.asarray, fwd(params, other))
     assert fwd._cache_size() == 1 and len(traces) == 1
     for key in OUTPUTS:
@@ -99,7 +115,7 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
 
 
 @pytest.mark.parametrize("name", ["regime", "avggt"])  # merged layers; frame and K/V-only layers
-def test_long_sequence_routes_equal_one_chunk(tiny, golden, monkeypatch, name):
+def test_long_sequence_routes_equal_one_chunk(tiny, golden, monkeypatch, preset_forward, name):
     # The tiny fixture runs every loop in one chunk. Under a token chunk of 16 KiB the
     # long-sequence routes run instead: the global RoPE tables held as one frame's rows
     # (chunks.Periodic, sliced per chunk), merged Q/K/V sums over token chunks in a loop
@@ -111,7 +127,7 @@ def test_long_sequence_routes_equal_one_chunk(tiny, golden, monkeypatch, name):
     params, config = tiny
     cfg = config.with_compression(name)
     images = golden["images"]
-    ref = jax.tree.map(np.asarray, jax.jit(lambda p, x: rvggt_forward(p, x, cfg))(params, images))
+    ref = preset_forward(name)[2]  # the default chunks (the preset test's compilation)
     monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 16 * 1024)
     s, p = images.shape[1], 5 + (images.shape[3] // 14) * (images.shape[4] // 14)
     frame = layers.RopeTables.from_positions(jnp.zeros((1, p, 2), jnp.int32), cfg.head_dim, cfg.rope_freq)
