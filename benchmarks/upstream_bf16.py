@@ -11,7 +11,7 @@ switches autocast off again around the camera, depth and point heads. Here, on C
 - the track head stays under autocast, as in `VGGT.forward` (it sits outside the
   `enabled=False` block there); rows `*_f32head` run it in float32 instead.
 
-Metric (as tests/conftest.py): rel_err = max|bf16 - f32| / max|f32| per output. Inputs:
+Metric (as tests/helpers/metrics.py): rel_err = max|bf16 - f32| / max|f32| per output. Inputs:
 the fixture's images (reference: its float32 golden outputs) and two more with uniform
 noise added to the images (seeds 1, 2; reference: upstream's float32 run on them).
 Layouts: `tiny`, the fixture checkpoint (tests/data/vggt_tiny), and `wide`, a fresh
@@ -55,7 +55,7 @@ TRACK_KEYS = ("track", "vis", "conf")
 
 
 def rel_err(ours, ref) -> float:
-    """max |ours - ref| / max |ref| (tests/conftest.py's metric)."""
+    """max |ours - ref| / max |ref| (tests/helpers/metrics.py's metric)."""
     ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
     assert ours.shape == ref.shape, (ours.shape, ref.shape)
     return float(np.abs(ours - ref).max() / np.abs(ref).max())

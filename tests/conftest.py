@@ -1,5 +1,6 @@
 """Shared fixtures: the tiny upstream checkpoint and its golden outputs (tests/data/vggt_tiny,
-produced by the upstream PyTorch VGGT; see tests/data/README.md)."""
+produced by the upstream PyTorch VGGT; see tests/data/README.md). Plain helpers (paths,
+`rel_err`, references) are in tests/helpers/."""
 
 from pathlib import Path
 
@@ -7,15 +8,8 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-DATA = Path(__file__).parent / "data"
-TINY = DATA / "vggt_tiny"
-
-
-def rel_err(ours, ref) -> float:
-    """max |ours - ref| / max |ref|: the parity metric of every test."""
-    ours, ref = np.asarray(ours, np.float64), np.asarray(ref, np.float64)
-    assert ours.shape == ref.shape, (ours.shape, ref.shape)
-    return float(np.abs(ours - ref).max() / np.abs(ref).max())
+from tests.helpers.paths import REPO, TINY
+from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker
 
 
 @pytest.fixture(scope="session")
@@ -32,56 +26,18 @@ def tiny():
 
 
 # ---------------------------------------------------------------------------------------
-# The sharded-forward checks run in a subprocess of their own (tests/_sharded_worker.py: 4
-# host devices must be set before JAX starts). The session's first process starts it
-# before the tests (and pytest-xdist's workers) start, so that it compiles alongside the
-# rest of the suite; tests/test_sharded.py waits for its report in $RVGGT_SHARDED_DIR.
+# The sharded-forward checks run in a subprocess of their own (tests/helpers/sharded.py):
+# the session's first process starts it here, before the tests (and pytest-xdist's
+# workers) start.
 # ---------------------------------------------------------------------------------------
 
-SHARDED_DIR_ENV = "RVGGT_SHARDED_DIR"
-_WORKER: dict = {}
-
-
-def start_sharded_worker(where: Path) -> None:
-    """Run the worker in the background: its stdout, stderr and return code go to files
-    in `where` (out.json, err.txt, rc: written last)."""
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    launcher = ("import subprocess, sys; out, err, rc = sys.argv[2:5]; "
-                "r = subprocess.run([sys.executable, sys.argv[1]], stdout=open(out, 'w'), stderr=open(err, 'w')); "
-                "open(rc + '.tmp', 'w').write(str(r.returncode)); __import__('os').replace(rc + '.tmp', rc)")
-    _WORKER["proc"] = subprocess.Popen(
-        [sys.executable, "-c", launcher, str(Path(__file__).parent / "_sharded_worker.py"),
-         str(where / "out.json"), str(where / "err.txt"), str(where / "rc")], env=env)
-
-
-def sharded_worker_result(timeout: float = 1800) -> tuple[int, str, str]:
-    """(return code, stdout, stderr) of the worker: the one the session started, or one
-    run now."""
-    import os
-    import tempfile
-    import time
-
-    where = os.environ.get(SHARDED_DIR_ENV)
-    if where is None:
-        where = tempfile.mkdtemp(prefix="rvggt-sharded-")
-        start_sharded_worker(Path(where))
-    where = Path(where)
-    deadline = time.monotonic() + timeout
-    while not (where / "rc").exists():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"the sharded worker wrote no report in {timeout} s")
-        time.sleep(1.0)
-    return int((where / "rc").read_text()), (where / "out.json").read_text(), (where / "err.txt").read_text()
+SHARDED_TESTS = REPO / "tests" / "parallel" / "test_sharded.py"
 
 
 def _selects_sharded(config) -> bool:
-    """Whether the command line can run tests/test_sharded.py (by path; -k may still
-    deselect it, which only wastes the background run)."""
-    target = (Path(__file__).parent / "test_sharded.py").resolve()
+    """Whether the command line can run tests/parallel/test_sharded.py (by path; -k may
+    still deselect it, which only wastes the background run)."""
+    target = SHARDED_TESTS.resolve()
     args = [a.split("::")[0] for a in config.args] or [str(Path(__file__).parent)]
     for a in args:
         p = Path(a).resolve() if Path(a).is_absolute() else (Path(config.invocation_params.dir) / a).resolve()
@@ -101,15 +57,15 @@ def pytest_sessionstart(session):
         return
     where = tempfile.mkdtemp(prefix="rvggt-sharded-")
     os.environ[SHARDED_DIR_ENV] = where  # inherited by pytest-xdist's workers, started after this
-    _WORKER["owner"] = True
+    WORKER["owner"] = True
     start_sharded_worker(Path(where))
 
 
 def pytest_sessionfinish(session, exitstatus):
     import os
 
-    proc = _WORKER.get("proc")
+    proc = WORKER.get("proc")
     if proc is not None and proc.poll() is None:
         proc.kill()
-    if _WORKER.get("owner"):
+    if WORKER.get("owner"):
         os.environ.pop(SHARDED_DIR_ENV, None)

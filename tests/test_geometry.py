@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax import geometry
-from tests._heads_params import load_io
+from tests.helpers.heads_params import load_io
 
 RTOL = 1e-4
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parent.parent / "rvggt_jax"
+from tests.helpers import PACKAGE
 
 
 def _module_name(path: Path, package: Path = PACKAGE) -> str:

@@ -4,13 +4,10 @@ user's image folder becomes the bundled images; both must be in the README, so a
 changed snippet cannot skip this test."""
 
 import re
-from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-TINY = REPO / "tests" / "data" / "vggt_tiny"
-IMAGES = REPO / "rvggt_jax" / "examples_data" / "images"
+from tests.helpers import DEMO_IMAGES as IMAGES, REPO, TINY
 SUBSTITUTE = {'"facebook/VGGT-1B"': repr(str(TINY)), '"my_images/*.jpg"': repr(str(IMAGES / "*.jpg"))}
 
 

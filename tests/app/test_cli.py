@@ -1,0 +1,248 @@
+"""The `rvggt` command line, run as a subprocess (`python -m rvggt_jax.app.cli`): the demo
+end to end (every output parses, one camera per image) and the one-line errors."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from tests.helpers import DEMO_IMAGES, REPO, TINY
+from tests.helpers.readers import read_colmap_text, read_depth_png, read_ply
+
+
+_CACHE = {}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _compile_cache(tmp_path_factory):
+    """The runs of this module share a compilation cache (the demo and the 3-frame
+    reconstruct compile the same program) in pytest's temporary folder."""
+    _CACHE["dir"] = str(tmp_path_factory.mktemp("xla_cache"))
+    yield
+    _CACHE.pop("dir", None)
+
+
+def rvggt(*args, timeout=600):
+    """Run `python -m rvggt_jax.app.cli ARGS` (timeout in seconds) -> CompletedProcess."""
+    env = dict(os.environ)
+    env["RVGGT_CACHE_DIR"] = _CACHE.get("dir", "off")
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.pop("RVGGT_DEBUG", None)
+    env.setdefault("JAX_PLATFORMS", "cpu")
+    return subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env=env, cwd=REPO)
+
+
+def assert_one_line_error(r, *needles):
+    assert r.returncode != 0, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    errors = [ln for ln in r.stderr.replace("\r", "\n").splitlines() if ln.startswith("rvggt: error:")]
+    assert len(errors) == 1, r.stderr
+    for n in needles:
+        assert n in errors[0], errors[0]
+    return errors[0]
+
+
+def check_outputs(out: Path, names: list[str]):
+    """Every file of a reconstruction parses; one camera per image, in order."""
+    pts, cols = read_ply(out / "points.ply")
+    assert pts.ndim == 2 and pts.shape[1] == 3 and cols.dtype == np.uint8 and len(pts) > 0
+    assert np.isfinite(pts).all()
+    doc = json.loads((out / "cameras.json").read_text())
+    assert [f["image"] for f in doc["frames"]] == names
+    for f in doc["frames"]:
+        e, k = np.array(f["extrinsic"]), np.array(f["intrinsic"])
+        assert e.shape == (3, 4) and k.shape == (3, 3) and np.isfinite(e).all() and np.isfinite(k).all()
+        np.testing.assert_allclose(e[:, :3] @ e[:, :3].T, np.eye(3), atol=1e-4)
+        assert f["width"] > 0 and f["height"] > 0
+    m = read_colmap_text(out / "sparse")
+    assert len(m["cameras"]) == len(m["images"]) == len(names)
+    assert [m["images"][i]["name"] for i in sorted(m["images"])] == names
+    assert all(c["model"] == "PINHOLE" and len(c["params"]) == 4 for c in m["cameras"].values())
+    assert 0 < len(m["points"]) <= len(pts)
+    scale = json.loads((out / "depth" / "depth_scale.json").read_text())["scale"]
+    assert scale > 0
+    for n in names:
+        stem = Path(n).stem
+        d = read_depth_png(out / "depth" / f"{stem}.png")
+        assert d.ndim == 2 and (d > 0).any()
+        with Image.open(out / "depth_preview" / f"{stem}.png") as im:
+            assert im.mode == "RGB"
+    with Image.open(out / "trajectory.png") as im:
+        im.load()
+    return doc
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "out"
+    return out, rvggt("demo", "--out", out)
+
+
+def test_demo_end_to_end(demo_run):
+    out, r = demo_run
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "RANDOM" in r.stdout
+    names = sorted(p.name for p in DEMO_IMAGES.iterdir() if p.suffix == ".jpg")
+    doc = check_outputs(out, names)
+    assert doc["frames"][0]["width"] == 160 and doc["frames"][0]["height"] == 120  # original pixels
+
+
+def test_reconstruct_options(tmp_path, converted):
+    """A converted (Orbax) checkpoint, --max-frames, non-image files skipped, --quiet."""
+    src = tmp_path / "imgs"
+    src.mkdir()
+    demo = sorted(DEMO_IMAGES.glob("*.jpg"))
+    for i, p in enumerate(demo + demo[:1]):
+        shutil.copy(p, src / f"frame_{i}.jpg")
+    (src / "notes.txt").write_text("not an image")
+    out = tmp_path / "out"
+    r = rvggt("reconstruct", src, "--weights", converted, "--out", out, "--max-frames", "3",
+              "--conf-threshold", "0%", "--points", "pointmap", "--quiet")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout == ""
+    assert all(ln.startswith("rvggt: warning:") for ln in r.stderr.splitlines()), r.stderr  # no progress bars
+    doc = check_outputs(out, ["frame_0.jpg", "frame_2.jpg", "frame_3.jpg"])
+    assert doc["preset"] == "dense" and doc["mode"] == "crop" and doc["points_from"] == "pointmap"
+    n_pts = len(read_ply(out / "points.ply")[0])
+    assert n_pts == 3 * 392 * 518  # '0%' keeps every finite point
+
+
+def test_empty_folder(tmp_path):
+    assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o"), "empty")
+
+
+def test_no_images(tmp_path):
+    (tmp_path / "a.txt").write_text("x")
+    assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o"), "no images")
+
+
+def test_missing_folder(tmp_path):
+    assert_one_line_error(rvggt("reconstruct", tmp_path / "nope", "--weights", TINY, "--out", tmp_path / "o"), "nope")
+
+
+def test_corrupt_image(tmp_path):
+    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
+    (tmp_path / "b.png").write_bytes(b"\x89PNG\r\n\x1a\ngarbage")
+    assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o"), "b.png")
+
+
+def test_unknown_preset(tmp_path):
+    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
+    line = assert_one_line_error(
+        rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o", "--preset", "nosuch"), "nosuch")
+    assert "dense" in line  # lists the known presets
+
+
+def test_missing_checkpoint(tmp_path):
+    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
+    assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", tmp_path / "nockpt", "--out", tmp_path / "o"),
+                          "checkpoint", "nockpt")
+
+
+def test_checkpoint_that_does_not_fit(tmp_path):
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], imgs / "a.jpg")
+    ck = tmp_path / "ck"
+    ck.mkdir()
+    shutil.copy(TINY / "model.safetensors", ck / "model.safetensors")
+    cfg = json.loads((TINY / "config.json").read_text())
+    cfg["embed_dim"] = 64  # not the tensors' width
+    (ck / "config.json").write_text(json.dumps(cfg))
+    assert_one_line_error(rvggt("reconstruct", imgs, "--weights", ck, "--out", tmp_path / "o", "--quiet"), str(ck))
+
+
+def test_bad_arguments(tmp_path):
+    assert_one_line_error(rvggt("reconstruct", tmp_path, "--out", tmp_path / "o"), "--weights")
+    assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o",
+                                "--conf-threshold", "lots"), "lots")
+    assert_one_line_error(rvggt("frobnicate"), "frobnicate")
+
+
+def test_help():
+    r = rvggt("--help")
+    assert r.returncode == 0 and "reconstruct" in r.stdout and "demo" in r.stdout
+    r = rvggt("reconstruct", "--help")
+    assert r.returncode == 0 and "--conf-threshold" in r.stdout and "percentile" in r.stdout
+
+
+@pytest.fixture(scope="module")
+def converted(tmp_path_factory):
+    dst = tmp_path_factory.mktemp("conv") / "tiny_orbax"
+    r = rvggt("convert", TINY, dst, "--quiet")
+    assert r.returncode == 0, r.stderr[-3000:]
+    return dst
+
+
+def test_convert_then_load(converted):
+    from rvggt_jax import load_pretrained
+
+    assert (converted / "config.json").is_file()
+    params, config = load_pretrained(converted, device_put=False)
+    assert config.embed_dim == 32 and "aggregator" in params
+
+
+def test_bundled_demo_data_found():
+    from rvggt_jax.app.commands import DEMO_IMAGES as images, DEMO_WEIGHTS as weights
+
+    assert images == DEMO_IMAGES and any(images.glob("*.jpg"))
+    assert (weights / "config.json").is_file()
+
+
+def test_select_frames():
+    from rvggt_jax.app.options import select_frames
+
+    paths = [Path(f"{i:02d}.png") for i in range(10)]
+    assert select_frames(paths, None) == paths and select_frames(paths, 20) == paths
+    assert [p.stem for p in select_frames(paths, 3)] == ["00", "04", "09"] or \
+        [p.stem for p in select_frames(paths, 3)] == ["00", "05", "09"]
+    assert len(select_frames(paths, 4)) == 4 and select_frames(paths, 1) == paths[:1]
+
+
+def test_memory_check_refuses_with_what_to_change(monkeypatch):
+    # XLA's plan of the real VGGT-1B forward (compiled, not run): 200 frames at float32
+    # dense need far more than 16 GB; the message names the need, the limit, and the ways
+    # out; 2 frames fit.
+    import dataclasses
+
+    from rvggt_jax.config import VGGTConfig
+    from rvggt_jax.planning.memory import MEMORY_LIMIT_ENV, InsufficientMemoryError, check_fits
+
+    cfg = dataclasses.replace(VGGTConfig(), enable_track=False)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "16")
+    rep = check_fits(cfg, 2, 392, 518)
+    assert 5e9 < rep.total_bytes < 16e9  # 4.7 GB of float32 weights + activations
+    with pytest.raises(InsufficientMemoryError) as e:
+        check_fits(cfg, 200, 392, 518)
+    msg = str(e.value)
+    assert "need" in msg and "16.0 GB" in msg and "--preset regime" in msg and "--dtype bfloat16" in msg
+    n = int(msg.rsplit("--max-frames ", 1)[1])
+    assert 2 <= n < 200
+
+
+def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
+    from rvggt_jax.app.cli import main
+    from rvggt_jax.planning.memory import MEMORY_LIMIT_ENV
+
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "0.001")  # 1 MB
+    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY),
+                 "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code != 0 and err.startswith("rvggt: error:") and "GB" in err and "--max-frames" in err
+    assert not (tmp_path / "out" / "points.ply").exists()
+
+
+def test_reconstruct_devices_must_exist(tmp_path, capsys):
+    from rvggt_jax.app.cli import main
+
+    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY), "--out", str(tmp_path / "out"),
+                 "--quiet", "--devices", "64"])
+    err = capsys.readouterr().err
+    assert code != 0 and err.startswith("rvggt: error:") and "--devices 64" in err and "device(s)" in err

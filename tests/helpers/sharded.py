@@ -1,0 +1,46 @@
+"""The sharded-forward checks run in a subprocess of their own (tests/helpers/
+sharded_worker.py: 4 host devices must be set before JAX starts). The session's first
+process starts it before the tests (and pytest-xdist's workers) start (tests/conftest.py),
+so that it compiles alongside the rest of the suite; tests/parallel/test_sharded.py waits
+for its report in $RVGGT_SHARDED_DIR."""
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from tests.helpers.paths import HELPERS
+
+SHARDED_DIR_ENV = "RVGGT_SHARDED_DIR"
+WORKER_SCRIPT = HELPERS / "sharded_worker.py"
+WORKER: dict = {}  # "proc": the running worker; "owner": this process set $RVGGT_SHARDED_DIR
+
+
+def start_sharded_worker(where: Path) -> None:
+    """Run the worker in the background: its stdout, stderr and return code go to files
+    in `where` (out.json, err.txt, rc: written last)."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    launcher = ("import subprocess, sys; out, err, rc = sys.argv[2:5]; "
+                "r = subprocess.run([sys.executable, sys.argv[1]], stdout=open(out, 'w'), stderr=open(err, 'w')); "
+                "open(rc + '.tmp', 'w').write(str(r.returncode)); __import__('os').replace(rc + '.tmp', rc)")
+    WORKER["proc"] = subprocess.Popen(
+        [sys.executable, "-c", launcher, str(WORKER_SCRIPT),
+         str(where / "out.json"), str(where / "err.txt"), str(where / "rc")], env=env)
+
+
+def sharded_worker_result(timeout: float = 1800) -> tuple[int, str, str]:
+    """(return code, stdout, stderr) of the worker: the one the session started, or one
+    run now."""
+    where = os.environ.get(SHARDED_DIR_ENV)
+    if where is None:
+        where = tempfile.mkdtemp(prefix="rvggt-sharded-")
+        start_sharded_worker(Path(where))
+    where = Path(where)
+    deadline = time.monotonic() + timeout
+    while not (where / "rc").exists():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the sharded worker wrote no report in {timeout} s")
+        time.sleep(1.0)
+    return int((where / "rc").read_text()), (where / "out.json").read_text(), (where / "err.txt").read_text()

@@ -1,0 +1,154 @@
+"""The sharded-forward checks, run by tests/parallel/test_sharded.py in a subprocess of its own:
+XLA's host platform has to be told to make 4 CPU devices before JAX starts.
+
+Prints one JSON object: per check, the measured errors and facts the test asserts on.
+"""
+
+import json
+import os
+import sys
+
+os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository (run by path)
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import PartitionSpec as P  # noqa: E402
+
+import rvggt_jax  # noqa: E402
+from rvggt_jax.ops.shards import FrameShards  # noqa: E402
+from rvggt_jax.model.heads.tracker import track_predictor  # noqa: E402
+from rvggt_jax.parallel.sharded import frames_mesh, sharded_forward  # noqa: E402
+from tests.helpers.paths import TINY  # noqa: E402
+
+H, W = 42, 56  # 3 x 4 patches: every compression step has something to do
+TRACKED = ("track", "vis", "conf")
+
+
+def rel(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape:
+        return float("inf")
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-12))
+
+
+def main() -> None:
+    import time
+
+    t0 = time.perf_counter()
+
+    def tick(what):  # progress on stderr, for a slow run
+        print(f"{time.perf_counter() - t0:7.1f}s {what}", file=sys.stderr, flush=True)
+
+    params, config = rvggt_jax.load_pretrained(TINY)
+    single = jax.jit(rvggt_jax.rvggt_forward, static_argnames="config")
+    sharded = jax.jit(sharded_forward, static_argnames=("config", "mesh", "keep_padding"))
+    queries = jnp.asarray([[[10.0, 12.0], [30.0, 40.0], [50.0, 20.0]]])
+    report: dict = {"devices": len(jax.devices()), "runs": []}
+
+    # (devices, preset, with track): 8 frames on 4 devices, and on 3 (uneven: padded to 9,
+    # returned padded; the S-frame form is its slice)
+    frames = 8
+    cases = [(4, "dense", True), (4, "regime", True), (4, "fastvggt", False),
+             (3, "dense", False), (3, "regime", True), (3, "fastvggt", False)]
+    refs = {}
+    for devices, preset, track in cases:
+        uneven = frames % devices != 0
+        cfg = config if preset == "dense" else config.with_compression(preset)
+        images = jax.random.uniform(jax.random.PRNGKey(frames), (1, frames, 3, H, W))
+        qp = queries if track else None
+        mesh = frames_mesh(devices)
+        if (preset, track) not in refs:  # the single-device forward, once per setting
+            refs[preset, track] = single(params, images, cfg, qp)
+        ref = refs[preset, track]
+        out = sharded(params, images, cfg, mesh, qp, keep_padding=uneven)
+        run = {"devices": devices, "frames": frames, "preset": preset, "track": track,
+               "sharded": out["depth"].sharding.spec == P(None, "frames")}
+        if uneven:
+            real = np.asarray(out.pop("frame_mask"))
+            run["padded_frames"] = int(out["depth"].shape[1])
+            run["padded_mask"] = real.tolist()
+            out = {k: (v[:, real] if k != "pose_enc_list" else [a[:, real] for a in v]) for k, v in out.items()}
+        run["errors"] = {k: rel(out[k], ref[k]) for k in ref if k not in ("pose_enc_list",) + TRACKED}
+        run["pose_enc_list"] = max(rel(a, b) for a, b in zip(out["pose_enc_list"], ref["pose_enc_list"]))
+        if track:
+            run["track_errors"] = {k: rel(out[k], ref[k]) for k in TRACKED}
+            run["track_finite"] = bool(all(np.isfinite(np.asarray(out[k])).all() for k in TRACKED))
+            run["track_frame0"] = float(np.abs(np.asarray(out["track"])[:, 0] - np.asarray(queries)).max())
+        report["runs"].append(run)
+        tick(f"{devices} devices {preset}")
+    # the long-sequence routes on each device (as at 1000 frames): a token chunk of 2 KiB
+    # makes the device's RoPE tables periodic (chunks.Periodic) and every loop run in
+    # chunks; against the single-device forward of the default chunks
+    from rvggt_jax.ops import chunks
+    from rvggt_jax.model import layers
+
+    long_cfg = config.with_compression("regime")
+    long_images = jax.random.uniform(jax.random.PRNGKey(frames), (1, frames, 3, H, W))
+    ref = refs["regime", True]
+    saved = chunks.TOKEN_CHUNK_BYTES
+    chunks.TOKEN_CHUNK_BYTES = 2048
+    try:
+        per_frame = long_cfg.patch_start_idx + (H // 14) * (W // 14)
+        frame = layers.RopeTables.from_positions(jnp.zeros((1, per_frame, 2), jnp.int32), long_cfg.head_dim,
+                                                 long_cfg.rope_freq)
+        periodic = isinstance(layers.RopeTables.of_sequence(frame, frames // 4).cos, chunks.Periodic)
+        long = jax.jit(lambda p, x: sharded_forward(p, x, long_cfg, frames_mesh(4)))(params, long_images)
+    finally:
+        chunks.TOKEN_CHUNK_BYTES = saved
+    report["long_routes"] = {"periodic": periodic,
+                             "errors": {k: rel(long[k], ref[k]) for k in ("depth", "world_points", "pose_enc")}}
+    tick("long-sequence routes")
+
+    # one compilation per input shape: new values, same shapes
+    before = sharded._cache_size()
+    sharded(params, images + 0.25, cfg, mesh, qp, keep_padding=uneven)
+    report["recompiled"] = sharded._cache_size() - before
+
+    # the tracker alone on the same feature maps: what frames split changes, and nothing else
+    p = params["track_head"]["tracker"]
+    c = p["fmap_norm"]["scale"].shape[0]
+    tracker = {}
+    fmaps = jax.random.normal(jax.random.PRNGKey(1), (1, frames, 14, 17, c))
+    ref = jax.jit(lambda f, q: track_predictor(p, q, f, config.track_head))(fmaps, queries)
+    for devices in (4, 3):
+        shards = FrameShards(frames, devices, "frames")
+        fm = jnp.pad(fmaps, ((0, 0), (0, shards.padded - frames), (0, 0), (0, 0), (0, 0)))
+        fn = jax.shard_map(lambda f, q: track_predictor(p, q, f, config.track_head, shards=shards),
+                           mesh=frames_mesh(devices), in_specs=(P(None, "frames"), P()),
+                           out_specs=(P(None, None, "frames"), P(None, "frames"), P(None, "frames")),
+                           check_vma=False)
+        out = jax.jit(fn)(fm, queries)
+        tracker[f"{devices} devices"] = {"coords": rel(np.asarray(out[0])[:, :, :frames], ref[0]),
+                                          "vis": rel(np.asarray(out[1])[:, :frames], ref[1]),
+                                          "conf": rel(np.asarray(out[2])[:, :frames], ref[2])}
+    report["tracker"] = tracker
+    tick("tracker")
+
+    # XLA's plan of the sharded program on abstract inputs (nothing runs): per device, the
+    # working memory of tests/planning/test_memory.py's long sequence (200 frames, width
+    # 256) split 4 ways against one device's
+    from rvggt_jax.planning.memory import memory_report
+    from tests.helpers.long_sequence import BASE, H as MH, S as MS, W as MW
+
+    cfg = BASE.with_compression("regime")
+    one = memory_report(cfg, MS, MH, MW)
+    four = memory_report(cfg, MS, MH, MW, mesh=frames_mesh(4))
+    tick("plans")
+    report["plan"] = {"one": one.temp_bytes + one.output_bytes, "four": four.temp_bytes + four.output_bytes}
+
+    # a mesh without a "frames" axis is refused
+    try:
+        sharded_forward(params, jnp.zeros((1, 4, 3, H, W)), config, jax.make_mesh((4,), ("data",)))
+        report["no_frames_axis"] = "accepted"
+    except ValueError as e:
+        report["no_frames_axis"] = str(e)
+    json.dump(report, sys.stdout)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""DPT head parity with the upstream PyTorch outputs of the tiny fixture."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rvggt_jax.config import VGGTConfig
+from rvggt_jax.model.heads import dpt
+from tests.helpers import TINY, rel_err
+from tests.helpers.heads_params import load_head_params, load_io
+
+RTOL = 1e-4
+TRANSPOSED = ("resize_layers.0", "resize_layers.1")
+
+
+@pytest.fixture(scope="module")
+def setup():
+    config = VGGTConfig.from_json(TINY / "config.json")
+    io = load_io()
+    # A dict of only the layers the head reads, as the model keeps them.
+    aggregated = {i: jnp.asarray(io[f"aggregated_{i:02d}"]) for i in config.dpt_head.intermediate_layer_idx}
+    image_hw = io["images"].shape[-2:]
+    return config, io, aggregated, image_hw
+
+
+# Frames per group of the head: 3 at the default (one group), 1 (three groups), and 2
+# (two groups, the second padded with a zero frame).
+FRAME_GROUPS = {"all": None, "one": 1, "two": 2 * 112 * 154}
+
+
+@pytest.mark.parametrize("groups", FRAME_GROUPS)
+@pytest.mark.parametrize("name, head, pred_key", [
+    ("depth_head", dpt.depth_head, "depth"),
+    ("point_head", dpt.point_head, "world_points"),
+])
+def test_dense_head_matches_upstream(setup, name, head, pred_key, groups, monkeypatch):
+    config, io, aggregated, image_hw = setup
+    if FRAME_GROUPS[groups] is not None:
+        monkeypatch.setattr(dpt, "GROUP_PIXELS", FRAME_GROUPS[groups])
+    expected = {"all": 3, "one": 1, "two": 2}[groups]
+    assert dpt.frames_per_group(3, image_hw) == expected
+    params = load_head_params(name, TRANSPOSED)
+    # a fresh function per case: jit's trace cache must not reuse another grouping
+    pred, conf = jax.jit(lambda p, a: head(p, a, config.dpt_head, config.token_grid(image_hw)))(params, aggregated)
+    e_pred = rel_err(pred, io[pred_key])
+    e_conf = rel_err(conf, io[pred_key + "_conf"])
+    print(f"{name}: rel err {pred_key} {e_pred:.3g}, {pred_key}_conf {e_conf:.3g}")
+    assert e_pred <= RTOL and e_conf <= RTOL
+
+
+def test_feature_only_shape_and_finite(setup):
+    config, io, aggregated, image_hw = setup
+    params = load_head_params("track_head.feature_extractor", TRANSPOSED)
+    layer_idx = config.track_layer_idx
+    tokens = {i: jnp.asarray(io[f"aggregated_{i:02d}"]) for i in layer_idx}
+    feats = jax.jit(dpt.dpt_features, static_argnums=2, static_argnames="layer_idx")(
+        params, tokens, config.token_grid(image_hw), layer_idx=layer_idx)
+    b, s, _, h, w = io["images"].shape
+    assert feats.shape == (b, s, h // 2, w // 2, config.track_head.features)
+    assert np.all(np.isfinite(np.asarray(feats)))
+    assert float(jnp.std(feats)) > 0
+
+
+def test_align_corners_resize_matches_formula():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((2, 3, 5, 4)).astype(np.float32)
+    y = np.asarray(dpt.resize_bilinear_align_corners(jnp.asarray(x), (7, 9)))
+    # Corners coincide exactly; an interior sample is the bilinear mix at (i*(H-1)/(Ho-1), ...).
+    np.testing.assert_array_equal(y[:, [0, -1]][:, :, [0, -1]], x[:, [0, -1]][:, :, [0, -1]])
+    sy, sx = 3 * 2 / 6, 5 * 4 / 8  # output (3, 5) -> source (1.0, 2.5)
+    ref = 0.5 * x[:, 1, 2] + 0.5 * x[:, 1, 3]
+    assert sy == 1.0 and sx == 2.5
+    np.testing.assert_allclose(y[:, 3, 5], ref, rtol=1e-6, atol=1e-6)
+
+
+def test_conv_transpose_patchwise_matches_scatter():
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((1, 2, 3, 4)).astype(np.float32)
+    kernel = rng.standard_normal((2, 2, 4, 5)).astype(np.float32)
+    bias = rng.standard_normal(5).astype(np.float32)
+    y = np.asarray(dpt.conv_transpose_patchwise({"kernel": kernel, "bias": bias}, jnp.asarray(x)))
+    ref = np.zeros((1, 4, 6, 5), np.float32) + bias
+    for i in range(2):
+        for j in range(3):
+            for a in range(2):
+                for c in range(2):
+                    ref[0, 2 * i + a, 2 * j + c] += x[0, i, j] @ kernel[a, c]
+    np.testing.assert_allclose(y, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_frames_per_group_bounds():
+    assert dpt.frames_per_group(16, (168, 224), 2 * 168 * 224) == 2
+    assert dpt.frames_per_group(16, (518, 518), 2 * 168 * 224) == 1  # never 0
+    assert dpt.frames_per_group(3, (14, 14), 10**9) == 3  # never more than there are
+
+
+def test_grouped_features_equal_ungrouped(setup, monkeypatch):
+    config, io, aggregated, image_hw = setup
+    params = load_head_params("track_head.feature_extractor", TRANSPOSED)
+    tokens = {i: jnp.asarray(io[f"aggregated_{i:02d}"]) for i in config.track_layer_idx}
+
+    def features():
+        return np.asarray(jax.jit(lambda p, t: dpt.dpt_features(
+            p, t, config.token_grid(image_hw), layer_idx=config.track_layer_idx))(params, tokens))
+
+    whole = features()
+    monkeypatch.setattr(dpt, "GROUP_PIXELS", 2 * 112 * 154)
+    np.testing.assert_allclose(features(), whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+@pytest.mark.parametrize("with_bias", [True, False])
+def test_1x1_conv_as_matmul_equals_convolution(with_bias):
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.standard_normal((2, 5, 7, 6)).astype(np.float32))
+    p = {"kernel": jnp.asarray(rng.standard_normal((1, 1, 6, 4)).astype(np.float32))}
+    if with_bias:
+        p["bias"] = jnp.asarray(rng.standard_normal(4).astype(np.float32))
+    ref = jax.lax.conv_general_dilated(x, p["kernel"], (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    if with_bias:
+        ref = ref + p["bias"]
+    np.testing.assert_allclose(np.asarray(dpt.conv2d(p, x)), np.asarray(ref), rtol=1e-5, atol=1e-5)

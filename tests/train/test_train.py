@@ -1,0 +1,214 @@
+"""Fine-tuning: the loss decreases on synthetic scenes, a run resumed from an Orbax
+checkpoint continues exactly, frozen parameters stay bit-equal, remat changes XLA's
+memory plan and not the values; the losses and the data reader on their own."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rvggt_jax
+from rvggt_jax import train
+from rvggt_jax.synthetic import make_scene, write_scene
+from tests.helpers.micro import micro_config
+
+SIZE = (28, 42)
+FRAMES = 3
+STEPS = 30
+SAVE_AT = 5
+
+
+def _batches(n: int) -> list[dict]:
+    """Four synthetic scenes, cycled: batch i is scene i % 4."""
+    examples = [train.synthetic_example(FRAMES, SIZE, seed=i) for i in range(4)]
+    return [jax.device_put(train.stack([examples[i % 4]])) for i in range(n)]
+
+
+@pytest.fixture(scope="module")
+def setup():
+    # camera + depth heads (the point head is the depth head's twin; the track head needs
+    # tracks): one compiled train step shared by the tests below
+    config = micro_config(enable_point=False, enable_track=False)
+    tc = train.TrainConfig(learning_rate=1e-3, warmup_steps=5, total_steps=STEPS)
+    params = rvggt_jax.init_params(config, 0)
+    batches = _batches(STEPS + 1)
+    state0 = train.init_state(params, tc)
+    step = train.make_train_step(config, tc, donate=False)
+    compiled = step.lower(state0, batches[0]).compile()
+    return config, tc, params, batches, state0, compiled
+
+
+@pytest.fixture(scope="module")
+def trajectory(setup, tmp_path_factory):
+    """30 uninterrupted steps (loss of each), the state saved after SAVE_AT steps."""
+    config, tc, _, batches, state, compiled = setup
+    ckpt = tmp_path_factory.mktemp("ckpt")
+    losses, states = [], []
+    for i in range(STEPS + 1):
+        if i == SAVE_AT:
+            train.save_state(state, ckpt, model_config=config, train_config=tc)
+        state, metrics = compiled(state, batches[i])
+        losses.append(float(metrics["loss_objective"]))
+        states.append(state)
+    return losses, states, ckpt
+
+
+def test_loss_decreases_over_30_steps(trajectory):
+    losses, _, _ = trajectory
+    assert all(np.isfinite(losses))
+    # the same batch (scene 0) before training and after 28 steps: no batch-to-batch noise
+    assert losses[28] < 0.6 * losses[0], losses
+    # and the trend over all scenes: the last five steps well below the first five
+    assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5]), losses
+
+
+def test_resume_from_checkpoint_continues_exactly(setup, trajectory):
+    config, tc, params, batches, state0, compiled = setup
+    losses, states, ckpt = trajectory
+    meta = json.loads((ckpt / train.step.META_NAME).read_text())
+    assert rvggt_jax.VGGTConfig.from_dict(meta["model"]) == config
+    assert train.TrainConfig.from_dict(meta["train"]) == tc
+    assert train.latest_step(ckpt) == SAVE_AT
+    state = train.restore_state(ckpt, state0)
+    assert int(state.step) == SAVE_AT
+    for i in range(SAVE_AT, 11):
+        state, metrics = compiled(state, batches[i])
+        assert float(metrics["loss_objective"]) == losses[i]  # bit for bit
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(states[10])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_restore_without_checkpoint_is_an_error(setup, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no train-state checkpoint"):
+        train.restore_state(tmp_path, setup[4])
+
+
+def test_frozen_aggregator_stays_bit_equal(setup):
+    config, _, params, batches, _, _ = setup
+    tc = train.TrainConfig(learning_rate=1e-3, warmup_steps=0, total_steps=10, train="heads")
+    labels = train.param_labels(params, tc.train)
+    assert set(jax.tree.leaves(labels["aggregator"])) == {"frozen"}
+    assert set(jax.tree.leaves(labels["depth_head"])) == {"train"}
+    step = train.make_train_step(config, tc, donate=False)
+    state = train.init_state(params, tc)
+    for i in range(2):
+        state, metrics = step(state, batches[i])
+    for a, b in zip(jax.tree.leaves(state.params["aggregator"]), jax.tree.leaves(params["aggregator"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    moved = [not np.array_equal(np.asarray(a), np.asarray(b))
+             for a, b in zip(jax.tree.leaves(state.params["depth_head"]), jax.tree.leaves(params["depth_head"]))]
+    assert any(moved)
+    assert float(metrics["grad_norm"]) > 0
+    with pytest.raises(ValueError, match="matches no parameter"):
+        train.param_labels(params, ("depht_head",))
+
+
+def test_remat_changes_memory_plan_not_values(setup):
+    config, tc, params, batches, state0, compiled = setup
+    step_r = train.make_train_step(config.with_remat(), tc, donate=False)
+    compiled_r = step_r.lower(state0, batches[0]).compile()
+    plain, remat = compiled.memory_analysis(), compiled_r.memory_analysis()
+    assert remat.temp_size_in_bytes != plain.temp_size_in_bytes, (remat, plain)
+    s1, m1 = compiled(state0, batches[0])
+    s2, m2 = compiled_r(state0, batches[0])
+    np.testing.assert_allclose(float(m2["loss_objective"]), float(m1["loss_objective"]), rtol=1e-6)
+    for a, b in zip(jax.tree.leaves(s2.params), jax.tree.leaves(s1.params)):
+        # one AdamW step of at most lr = 1e-3 / warmup: recomputation may round differently
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-6)
+
+
+# ---- losses, schedule and data on their own (no model) ----------------------------------
+
+
+def test_regression_loss_of_a_constant_offset():
+    """pred = gt + 0.1 (one channel), conf 2: the conf term is 0.1*2 - 0.2 log 2; the
+    finite differences of a constant residual vanish, leaving -0.2 log 2 per scale and
+    axis (3 scales x 2 axes)."""
+    cfg = train.LossConfig()
+    gt = jnp.asarray(np.random.default_rng(0).random((1, 2, 8, 8, 3)), jnp.float32)
+    pred = gt.at[..., 1].add(0.1)
+    mask = jnp.ones((1, 2, 8, 8), bool).at[0, 1, :4].set(False)
+    out = train.regression_loss(pred, jnp.full((1, 2, 8, 8), 2.0), gt, mask, cfg)
+    np.testing.assert_allclose(float(out["conf"]), 0.2 - 0.2 * np.log(2), rtol=1e-5)
+    np.testing.assert_allclose(float(out["reg"]), 0.1, rtol=1e-5)
+    np.testing.assert_allclose(float(out["grad"]), 6 * (-0.2 * np.log(2)), rtol=1e-4)
+    empty = train.regression_loss(pred, jnp.full((1, 2, 8, 8), 2.0), gt, jnp.zeros_like(mask), cfg)
+    assert float(empty["conf"]) == 0.0 and float(empty["grad"]) == 0.0  # no valid pixel: 0, not NaN
+
+
+def test_camera_loss_is_zero_at_the_truth_and_weighted_by_iteration():
+    ex = train.synthetic_example(3, SIZE, seed=1)
+    ext, k = jnp.asarray(ex["extrinsics"])[None], jnp.asarray(ex["intrinsics"])[None]
+    from rvggt_jax.geometry import extri_intri_to_pose_encoding
+
+    gt = extri_intri_to_pose_encoding(ext, k, SIZE)
+    cfg = train.LossConfig()
+    assert float(train.camera_loss([gt, gt], ext, k, SIZE, cfg)["loss_camera"]) == 0.0
+    off = gt.at[..., 0].add(0.3)  # translation x off by 0.3 in every frame: mean over 3 T entries = 0.1
+    got = train.camera_loss([off, gt], ext, k, SIZE, cfg)["loss_camera"]
+    np.testing.assert_allclose(float(got), cfg.camera_gamma * cfg.weight_trans * 0.1, rtol=1e-5)
+
+
+def test_schedule_warms_up_then_decays():
+    tc = train.TrainConfig(learning_rate=1e-3, warmup_steps=10, total_steps=100, final_lr_ratio=0.1)
+    lr = train.schedule(tc)
+    assert float(lr(0)) == 0.0
+    np.testing.assert_allclose(float(lr(10)), 1e-3, rtol=1e-6)
+    np.testing.assert_allclose(float(lr(100)), 1e-4, rtol=1e-5)
+    assert float(lr(5)) < float(lr(10)) and float(lr(50)) < float(lr(10))
+    with pytest.raises(ValueError, match="train must be"):
+        train.TrainConfig(train="everything").validate()
+
+
+def test_example_is_normalised_like_upstream():
+    ex = train.synthetic_example(4, SIZE, seed=2)
+    np.testing.assert_allclose(ex["extrinsics"][0], np.eye(3, 4), atol=1e-6)
+    pts = ex["world_points"][ex["point_mask"]]
+    np.testing.assert_allclose(np.linalg.norm(pts, axis=-1).mean(), 1.0, rtol=1e-5)  # unit mean distance
+    # frame 0's points are its depth along its rays (camera 0 = world)
+    assert np.allclose(ex["world_points"][0][..., 2][ex["point_mask"][0]], ex["depth"][0][ex["point_mask"][0]],
+                       rtol=1e-5)
+
+
+def test_folder_reader_gives_the_synthetic_example(tmp_path):
+    """A scene written in the folder layout reads back as the same example (PNG images,
+    .npy depth), and 16-bit PNG depth reads within its quantisation."""
+    scene = make_scene(frames=FRAMES, height=SIZE[0], width=SIZE[1], seed=3)
+    write_scene(scene, "folder", tmp_path)
+    (sc,) = train.folder_scenes(tmp_path)
+    got = train.scene_example(sc, FRAMES, SIZE)
+    want = train.make_example(scene.images, scene.extrinsics, scene.intrinsics, scene.depth)
+    assert got.keys() == want.keys()
+    for k in want:
+        np.testing.assert_allclose(got[k], want[k], rtol=1e-6, atol=1e-6, err_msg=k)
+
+    from PIL import Image
+
+    d = tmp_path / scene.name / "depth"
+    scale = 0.001
+    for f in sorted(d.glob("*.npy")):
+        Image.fromarray(np.round(np.load(f) / scale).astype(np.uint16)).save(f.with_suffix(".png"))
+        f.unlink()
+    (d / "depth_scale.json").write_text(json.dumps({"scale": scale}))
+    (sc,) = train.folder_scenes(tmp_path)
+    got16 = train.scene_example(sc, FRAMES, SIZE, rng=None)
+    assert np.abs(got16["depth"] - want["depth"]).max() < scale  # (normalised by a scale ~3)
+    with pytest.raises(rvggt_jax.InputError, match="frames"):
+        train.scene_example(sc, FRAMES + 5, SIZE)
+    with pytest.raises(rvggt_jax.InputError, match="multiples of 14"):
+        train.synthetic_example(2, (30, 42))
+
+
+def test_finetune_cli_errors_are_one_line(tmp_path, capsys):
+    from rvggt_jax.app.cli import main
+
+    assert main(["finetune", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
+    assert "no such data folder" in capsys.readouterr().err
+    assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o"), "--size", "224by294"]) == 1
+    assert "--size must be HxW" in capsys.readouterr().err
+    assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o")]) == 1  # neither weights nor config
+    assert "--weights" in capsys.readouterr().err
