@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
+import rvggt_jax
 from tests.helpers.paths import REPO, TINY
 from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker
+
+# The suite runs CPU convolutions as the `rvggt` command does (multi-threaded; `import
+# rvggt_jax` alone leaves XLA's default, tests/ops/test_xla_cpu.py): before any backend.
+rvggt_jax.prefer_threaded_convolutions()
 
 
 @pytest.fixture(scope="session")
@@ -20,8 +25,6 @@ def golden() -> dict[str, np.ndarray]:
 @pytest.fixture(scope="session")
 def tiny():
     """(params, config) of the tiny checkpoint through the public loader."""
-    import rvggt_jax
-
     return rvggt_jax.load_pretrained(TINY)
 
 

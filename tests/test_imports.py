@@ -1,4 +1,5 @@
-"""The package's import graph: no import cycle, neither among the imports that run at
+"""The package's import graph: every import follows the layers of docs/architecture.md
+(`IMPORT_RULES`), no import cycle, neither among the imports that run at
 import time nor counting every import (inside functions too, and the uses of
 `rvggt_jax`'s lazy names), and the converter importable from a fresh interpreter in
 either order with the loaders (the old top-level `convert` package and
@@ -184,6 +185,72 @@ def test_no_import_cycle_counting_every_import():
     breaks when one of them is imported first from the other's function)."""
     cycles = _cycles(_import_graph(everywhere=True))
     assert not cycles, "import cycles (module:line of each import):\n  " + "\n  ".join(cycles)
+
+
+# Which part of the package may import which (docs/architecture.md): a part is a
+# subpackage or a top-level module; each may import itself and the parts (or modules, as
+# "model.params", with what is below them) listed here, and the packages above those (a
+# package's __init__ runs before its modules: importing weights.rules runs weights/__init__).
+# "rvggt_jax" is the package's own __init__, whose lazy table is not an import edge.
+IMPORT_RULES = {
+    "rvggt_jax": {"config"},
+    "config": {"compression.config", "compression.presets"},
+    "geometry": set(),
+    "ops": set(),
+    "model": {"config", "ops", "compression", "weights.rules", "weights.shapes"},
+    "compression": {"config", "ops", "model"},
+    "parallel": {"config", "ops", "model"},
+    "weights": {"config", "model.params"},
+    "planning": {"config", "compression", "model", "parallel", "weights"},
+    "io": {"geometry"},
+    "eval": {"geometry", "io", "model", "weights"},
+    "train": {"config", "geometry", "eval", "model", "synthetic", "weights"},
+    "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},
+    "examples_data": set(),
+}
+ANYTHING = ("app", "convert")  # the command line and the `python -m rvggt_jax.convert` entry
+
+
+def _part(module: str) -> str:
+    parts = module.split(".")
+    return "rvggt_jax" if len(parts) == 1 else parts[1]
+
+
+def rule_breaks(graph: dict[str, dict[str, int]], rules: dict[str, set[str]] = IMPORT_RULES,
+                anything: tuple[str, ...] = ANYTHING) -> list[str]:
+    """`a:LINE imports b` for every edge of `graph` that its part's rules do not allow (a
+    part missing from `rules` and `anything` may import nothing outside itself)."""
+    breaks = []
+    for a, targets in sorted(graph.items()):
+        pa = _part(a)
+        if pa in anything:
+            continue
+        allowed = rules.get(pa, set())
+        above = {e.rsplit(".", i)[0] for e in allowed for i in range(1, e.count(".") + 1)}
+        for b, line in sorted(targets.items()):
+            rel = b.split(".", 1)[1] if "." in b else b
+            if _part(b) == pa or rel in above or any(rel == e or rel.startswith(e + ".") for e in allowed):
+                continue
+            breaks.append(f"{a}:{line} imports {b}")
+    return breaks
+
+
+def test_rule_checker_flags_planted_imports():
+    graph = {"rvggt_jax.ops.attention": {"rvggt_jax.model.layers": 3, "rvggt_jax.ops.chunks": 4},
+             "rvggt_jax.weights.converter": {"rvggt_jax.model.params": 7, "rvggt_jax.model.layers": 8},
+             "rvggt_jax.app.cli": {"rvggt_jax.model.forward": 9}, "rvggt_jax.newpart.x": {"rvggt_jax.io.ply": 2}}
+    assert rule_breaks(graph) == ["rvggt_jax.newpart.x:2 imports rvggt_jax.io.ply",
+                                  "rvggt_jax.ops.attention:3 imports rvggt_jax.model.layers",
+                                  "rvggt_jax.weights.converter:8 imports rvggt_jax.model.layers"]
+
+
+def test_every_import_follows_the_layer_rules():
+    """Every import (in functions too, and every use of a lazy name) goes from a part to a
+    part its row of IMPORT_RULES names: the package's layers (docs/architecture.md)."""
+    graph = _import_graph(everywhere=True)
+    assert {_part(m) for m in graph} <= set(IMPORT_RULES) | set(ANYTHING), "a new part: give it a row"
+    breaks = rule_breaks(graph)
+    assert not breaks, "imports across the layers (docs/architecture.md):\n  " + "\n  ".join(breaks)
 
 
 ENV_PROBE = """

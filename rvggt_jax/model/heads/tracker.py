@@ -23,7 +23,7 @@ Numerics: the flow embedding uses frequencies up to ~1000 rad per feature pixel,
 third iteration on, float32 rounding differences in the coordinates are amplified ~10^3 per
 iteration; upstream run twice with 1e-7 relative input noise differs by ~1e-3 (tracks) and
 ~1e-2 (vis) after 4 iterations. Parity is therefore tight only for the first two iterations
-(see tests/test_track_head.py).
+(see tests/model/test_track_head.py).
 """
 
 from __future__ import annotations
