@@ -19,33 +19,19 @@ from rvggt_jax.weights.hub import is_repo_id, resolve_checkpoint
 __all__ = ["load_pretrained"]
 
 
-def load_pretrained(
-    path: str | Path,
-    *,
-    skip_track: bool = False,
-    device_put: bool = True,
-    progress: bool = False,
-    param_dtype: Any = "float32",
-) -> tuple[dict, VGGTConfig]:
+def load_pretrained(path: str | Path, *, skip_track: bool = False, device_put: bool = True, progress: bool = False,
+                    param_dtype: Any = "float32") -> tuple[dict, VGGTConfig]:
     """Load VGGT parameters -> `(params, config)`.
 
-    `path` is one of:
-      - a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
-        path): downloaded into the hub cache and converted once to an Orbax copy under
-        `~/.cache/rvggt-jax/weights` (`rvggt_jax.weights.hub`; offline the caches are
-        used; `HubError` says what is missing);
-      - a folder with `model.safetensors` (+ optional `config.json`, else the layout
-        is inferred from the shapes, `config_for_safetensors`);
-      - a `.safetensors` file (a `config.json` beside it is used if present);
-      - an Orbax folder written by `save_orbax` (`params/` + `config.json`), or its
-        `params/` subfolder.
-    The options are `rvggt_jax.weights.checkpoint.load_checkpoint`'s: upstream checkpoints
-    are converted on the fly (checked first, one `CheckpointError` for every problem).
-    `skip_track=True` drops the track head (and returns a config with
-    `enable_track=False`). Leaves are float32 `jax.Array`s on the default device, or numpy
-    arrays with `device_put=False`; `param_dtype="bfloat16"` stores the aggregator's
-    weights in bfloat16 (half their memory; `cast_params`), for
-    `config.with_dtype("bfloat16")`.
+    `path` is a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
+    path: downloaded into the hub cache and converted once to an Orbax copy under
+    `~/.cache/rvggt-jax/weights`, `rvggt_jax.weights.hub`; offline the caches are used, and
+    `HubError` says what is missing), or a local checkpoint: a folder with
+    `model.safetensors`, a `.safetensors` file or an Orbax folder, as
+    `rvggt_jax.weights.checkpoint.load_checkpoint` takes them. The options are
+    `load_checkpoint`'s: `skip_track=True` drops the track head, `device_put=False` keeps
+    numpy leaves, `param_dtype="bfloat16"` stores the aggregator's weights in bfloat16
+    (for `config.with_dtype("bfloat16")`).
     """
     if is_repo_id(path):
         path = resolve_checkpoint(path, progress=progress)
