@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import rvggt_jax
-from rvggt_jax.ops import bits
+from rvggt_jax.ops import bits, chunks
 from rvggt_jax.compression.config import PRESETS
 from rvggt_jax.model.forward import rvggt_forward
 from tests.helpers import HELPERS, REPO
