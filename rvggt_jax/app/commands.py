@@ -17,7 +17,7 @@ from typing import Sequence
 
 from rvggt_jax.app.console import say, warn
 from rvggt_jax.app.messages import CLIError, one_line
-from rvggt_jax.app.model_runner import devices_mesh, enable_compilation_cache, load_model, run_model
+from rvggt_jax.app.model_runner import devices_mesh, enable_compilation_cache, load_model, resolve_weights, run_model
 from rvggt_jax.app.options import ReconstructOptions, select_frames
 
 EXAMPLES_DIR = Path(__file__).resolve().parents[1] / "examples_data"  # rvggt_jax/examples_data
@@ -134,7 +134,7 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
     try:
         # a hub repo id: download / convert now, before reading any input (a failure here
         # says what is missing without having made the user wait)
-        local_weights = _resolve_weights(weights, options.quiet)
+        local_weights = resolve_weights(weights, options.quiet)
         if video:
             chosen = _video_inputs(source, out_dir, options)
         return _reconstruct(chosen, source, weights, local_weights, out_dir, options)
@@ -163,7 +163,7 @@ def _check_source(source: Path, options: ReconstructOptions) -> bool:
 
 def _check_weights(weights: str | Path) -> None:
     """A local checkpoint is checked now (`_check_local_checkpoint`); a hub repo id later,
-    by `_resolve_weights`."""
+    by `resolve_weights`."""
     from rvggt_jax.weights.hub import is_repo_id
 
     if not is_repo_id(weights):
@@ -179,16 +179,6 @@ def _prepare_output(out_dir: Path, options: ReconstructOptions) -> None:
         raise CLIError(str(e)) from None
     if removed:
         say(options.quiet, f"--overwrite: removed {removed} files of the previous run in {out_dir}")
-
-
-def _resolve_weights(weights: str | Path, quiet: bool) -> Path:
-    """The local checkpoint of `weights` (a hub repo id downloaded and converted once)."""
-    from rvggt_jax.weights.hub import HubError, resolve_checkpoint
-
-    try:
-        return resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
-    except HubError as e:
-        raise CLIError(str(e)) from None
 
 
 _STAGES = ("loading weights", "checking memory", "running the model", "decoding cameras", "writing outputs")

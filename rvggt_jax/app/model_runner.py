@@ -12,17 +12,23 @@ from rvggt_jax.app.console import say, warn
 from rvggt_jax.app.messages import CLIError, one_line
 
 
+def resolve_weights(weights: str | Path, quiet: bool) -> Path:
+    """The local checkpoint of `weights`: a hub repo id downloaded and converted once (its
+    progress said unless quiet), a local path as it is."""
+    from rvggt_jax.weights.hub import HubError, resolve_checkpoint
+
+    try:
+        return resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
+    except HubError as e:
+        raise CLIError(str(e)) from None
+
+
 def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None):
     """`(params, config)` of a checkpoint (local path or hub repo id), without the
     track head (unused here); `name` is how messages call it (default: `weights`).
     Warnings of the loader become `rvggt: warning:` lines."""
-    from rvggt_jax.weights.hub import HubError, resolve_checkpoint
-
     name = weights if name is None else name
-    try:
-        local = resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
-    except HubError as e:
-        raise CLIError(str(e)) from None
+    local = resolve_weights(weights, quiet)
     if not Path(local).exists():
         raise CLIError(f"checkpoint not found: {name}")
     try:
