@@ -6,6 +6,7 @@ loop), and moves a bfloat16 collective in float32. Slicing, gathering or moving 
 is exact and converts only what is used. Why and what it saves: docs/memory_layout.md.
 
     as_bits(op, x, *index)    op (a slice, gather or move of x) applied to x's bits
+    moved(op, x, *index)      the same for 16-bit floats, op itself for any other dtype
     Bits16                    a 16-bit buffer held as bits (the kept layers, blocked K/V)
     read_buffer(buf, op, ...) op on a plain array or a `Bits16` buffer
 """
@@ -40,6 +41,12 @@ def as_bits(op, x: jax.Array, *index) -> jax.Array:
 def _as_bits_jvp(op, primals, tangents):
     x, *index = primals
     return as_bits(op, x, *index), op(tangents[0], *index)
+
+
+def moved(op, x: jax.Array, *index) -> jax.Array:
+    """`op(x, *index)` for an op that only moves x's values (a slice, gather, permute, a
+    psum with one non-zero term): on x's bits when x is a 16-bit float (`as_bits`)."""
+    return as_bits(op, x, *index) if is_16bit_float(x) else op(x, *index)
 
 
 @jax.tree_util.register_pytree_node_class

@@ -21,7 +21,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rvggt_jax.ops.bits import as_bits, is_16bit_float
+from rvggt_jax.ops.bits import moved
 from rvggt_jax.ops.ordering import with_dependency, zeros_from
 
 # Bytes of the widest per-token intermediate (the MLP hidden layer [rows, 4C] in float32)
@@ -40,12 +40,10 @@ def row_chunks(n_rows: int, bytes_per_row: int, chunk_bytes: int | None = None, 
 
 def dynamic_slice(x: jax.Array, start, size: int, axis: int) -> jax.Array:
     """`lax.dynamic_slice_in_dim` of an array or a `Periodic` one; 16-bit floats are sliced
-    as bits (`bits.as_bits`: XLA:CPU would convert the whole operand to float32)."""
+    as bits (`bits.moved`: XLA:CPU would convert the whole operand to float32)."""
     if isinstance(x, Periodic):
         return x.rows_at(start, size, axis)
-    if is_16bit_float(x):
-        return as_bits(lambda t, s: jax.lax.dynamic_slice_in_dim(t, s, size, axis), x, start)
-    return jax.lax.dynamic_slice_in_dim(x, start, size, axis)
+    return moved(lambda t, s: jax.lax.dynamic_slice_in_dim(t, s, size, axis), x, start)
 
 
 def slice_rows(x, start: int, stop: int, axis: int) -> jax.Array:
@@ -109,18 +107,14 @@ def whole(x):
 
 def take(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
     """`jnp.take(x, idx, axis, mode="clip")`; 16-bit floats gathered as bits."""
-    if is_16bit_float(x):
-        return as_bits(lambda t, i: jnp.take(t, i, axis=axis, mode="clip"), x, idx)
-    return jnp.take(x, idx, axis=axis, mode="clip")
+    return moved(lambda t, i: jnp.take(t, i, axis=axis, mode="clip"), x, idx)
 
 
 def take_along(x: jax.Array, idx: jax.Array, axis: int) -> jax.Array:
     """`jnp.take_along_axis(x, idx, axis)` (indices in bounds, idx broadcast over x's
     trailing axes), through a uint16 view for 16-bit floats."""
     idx = idx.reshape(idx.shape + (1,) * (x.ndim - idx.ndim))
-    if is_16bit_float(x):
-        return as_bits(lambda t, i: jnp.take_along_axis(t, i, axis=axis, mode="promise_in_bounds"), x, idx)
-    return jnp.take_along_axis(x, idx, axis=axis, mode="promise_in_bounds")
+    return moved(lambda t, i: jnp.take_along_axis(t, i, axis=axis, mode="promise_in_bounds"), x, idx)
 
 
 def dynamic_index(x: jax.Array, index, axis: int = 0) -> jax.Array:

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.ops import chunks
-from rvggt_jax.ops.bits import as_bits, is_16bit_float
+from rvggt_jax.ops.bits import moved  # (collectives that only move values: 16-bit floats as bits)
 from rvggt_jax.ops.ordering import zeros_from
 
 FRAMES_AXIS = "frames"
@@ -134,7 +134,7 @@ class FrameShards:
         per_row = idx.shape[0] * math.prod(x.shape[2:]) * 4 * 3
         # (16-bit floats summed as bits: exact, the other devices add 0, and XLA:CPU
         # would move a bfloat16 all-reduce in float32)
-        return _moved(lambda t: jax.lax.psum(t, self.axis), chunks.map_tokens(mine, (idx,), bytes_per_row=per_row,
+        return moved(lambda t: jax.lax.psum(t, self.axis), chunks.map_tokens(mine, (idx,), bytes_per_row=per_row,
                                                                               dep=x))
 
     def local_positions(self, positions: np.ndarray, per_frame: int) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +169,7 @@ class FrameShards:
         pairs = [(i, (i + 1) % n) for i in range(n)]
 
         def shift(a):
-            return _moved(lambda t: jax.lax.ppermute(t, self.axis, pairs), a)
+            return moved(lambda t: jax.lax.ppermute(t, self.axis, pairs), a)
 
         return jax.tree.map(shift, tree)
 
@@ -220,9 +220,3 @@ class FrameShards:
 
 
 jax.tree_util.register_static(FrameShards)
-
-
-def _moved(op: Callable[[jax.Array], jax.Array], x: jax.Array) -> jax.Array:
-    """op(x) for a collective that only moves values (a permute, a psum with one non-zero
-    term): 16-bit floats go as their bit patterns (XLA:CPU would move them in float32)."""
-    return as_bits(op, x) if is_16bit_float(x) else op(x)
