@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from rvggt_jax.compression.config import CompressionConfig, make_compression
+from rvggt_jax.ops.kernels.names import HALF_ONLY, KERNELS
 
 # Compute dtypes of the aggregator.
 DTYPES = ("float32", "bfloat16")
@@ -122,6 +123,12 @@ class VGGTConfig:
     # recomputes the rest in the backward pass. Values are unchanged; a forward alone is
     # unaffected.
     remat: bool = False
+    # The attention kernel (`rvggt_jax.ops.attention`; names in ops/kernels/names.py):
+    # "auto" takes the kernel of the platform the program is compiled for (cuDNN for
+    # bfloat16 on an NVIDIA GPU, Pallas flash on a TPU, the blocked kernel on a CPU and for
+    # float32 on a GPU). A 16-bit-only kernel ("cudnn") needs dtype "bfloat16" and runs
+    # the aggregator's attention; the float32 heads then take "auto".
+    attention: str = "auto"
 
     # ---- derived sizes -------------------------------------------------------------
     @property
@@ -186,6 +193,10 @@ class VGGTConfig:
             raise ValueError(f"dtype must be one of {DTYPES}; got {dtype!r}") from None
         return replace(self, dtype=name).validate()
 
+    def with_attention(self, kernel: str) -> "VGGTConfig":
+        """A copy whose attention runs on `kernel` (one of `KERNELS`)."""
+        return replace(self, attention=kernel).validate()
+
     def with_remat(self, remat: bool = True) -> "VGGTConfig":
         """A copy with per-block rematerialisation (`remat`) on or off."""
         return replace(self, remat=bool(remat))
@@ -198,6 +209,11 @@ class VGGTConfig:
     def validate(self) -> "VGGTConfig":
         if self.dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {DTYPES}; got {self.dtype!r}")
+        if self.attention not in KERNELS:
+            raise ValueError(f"attention must be one of {KERNELS}; got {self.attention!r}")
+        if self.attention in HALF_ONLY and self.dtype == "float32":
+            raise ValueError(f"the {self.attention!r} attention kernel takes bfloat16 only: use dtype 'bfloat16', or "
+                             f"attention 'auto' or 'blocked' for float32 (choices: {KERNELS})")
         if self.embed_dim % self.num_heads:
             raise ValueError(f"embed_dim {self.embed_dim} is not divisible by num_heads {self.num_heads}")
         if self.head_dim % 4:

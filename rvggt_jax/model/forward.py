@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.model.aggregator import aggregator_forward
+from rvggt_jax.ops.attention import kernel_scope
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.ops.shards import FrameShards
@@ -143,7 +144,14 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
                    shards: FrameShards | None = None) -> dict[str, Any]:
     """`rvggt_forward` on checked inputs, over the frames of this device: images
     [B, S, 3, H, W] are this device's frames (`shards`, inside `jax.shard_map`; default
-    all frames on one device) and so is every per-frame output."""
+    all frames on one device) and so is every per-frame output. Every attention inside
+    runs on `config.attention`'s kernel."""
+    with kernel_scope(config.attention):
+        return _forward_frames(params, images, config, query_points, shards)
+
+
+def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None,
+                    shards: FrameShards | None) -> dict[str, Any]:
     b, s, _, hh, ww = images.shape
     shards = FrameShards.single(s) if shards is None else shards
     with_track = query_points is not None

@@ -1,20 +1,33 @@
 """The one attention op of the model: every attention (frame, global, compressed with the
-size bias, DINO, camera trunk, tracker) calls `attention`.
+size bias, DINO, camera trunk, tracker) calls `attention`; ring attention (`ops/ring.py`)
+calls `attention_with_lse` for each share of the keys.
 
     out = attention(q, k, v)                       # softmax(q k^T / sqrt(D)) v
     out = attention(q, k, v, key_bias=log_g)       # + an additive bias per key [B, Nk]
 
-It picks its kernel by name (`implementation`), like MaxText's attention op, each
-kernel a module of `ops/kernels/`:
+It picks its kernel by name (`implementation`), like MaxText's attention op, each kernel
+a module of `ops/kernels/` (the names: `kernels/names.py`):
 
-  "blocked"  `kernels/blocked.py` (the default, but for half precision on GPU): one
-             (batch, head) pair and a cache-sized block of query rows at a time; memory
-             bounded whatever the number of keys and the dtype.
-  "cudnn"    `kernels/fused.py` (the default for bfloat16/float16 on GPU): cuDNN's flash
-             kernel, the key bias folded into the operands; "xla" is its plain XLA form
-             (forms all logits: for checks, not long sequences).
+  "auto"       (the default) the kernel of the platform the program is compiled for,
+               `kernel_for(platform, dtype, head_dim)`: cuDNN for 16-bit operands on an
+               NVIDIA GPU, the Pallas flash kernel on a TPU, the blocked kernel on a CPU
+               and for float32 on a GPU. The choice is made when the program is lowered
+               (`jax.lax.platform_dependent`), from the devices it is compiled for, not
+               from the host's default backend: a program traced on a CPU host and
+               compiled for an H200 takes cuDNN.
+  "blocked"    `kernels/blocked.py`: one (batch, head) pair and a cache-sized block of
+               query rows at a time; memory bounded whatever the number of keys and the
+               dtype, on any platform.
+  "cudnn"      `kernels/fused.py`: cuDNN's flash kernel, the key bias folded into the
+               operands (16-bit operands only); "xla" is its plain XLA form (forms all
+               logits: for checks, not long sequences).
+  "tpu_flash"  `kernels/tpu_flash.py`: the Pallas TPU flash kernel, the bias folded in.
 
-Ring attention (keys split over devices) is `ops/ring.py`, over the blocked kernel.
+A forward runs under `kernel_scope(config.attention)`, which sets the kernel of every
+attention call inside it without threading a name through every layer; an explicit
+`implementation` wins. "auto" includes a branch only for the platforms this installation
+can compile for (cuDNN when JAX's CUDA plugin and cuDNN are installed, the TPU kernel when
+libtpu is): a CPU-only install traces the blocked kernel alone.
 
 Precision: q, k, v in the compute dtype (float32 or bfloat16); logits, softmax
 statistics and the value accumulation in float32; the result in q's dtype.
@@ -22,29 +35,85 @@ statistics and the value accumulation in float32; the result in q's dtype.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import functools
+import importlib.util
 import math
-from typing import Any
+from typing import Any, Iterator
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvggt_jax.ops.bits import on_cpu
 from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
-from rvggt_jax.ops.kernels.fused import fused_attention
+from rvggt_jax.ops.kernels.fused import CUDNN_MAX_HEAD_DIM, fused_attention
+from rvggt_jax.ops.kernels.names import HALF_ONLY, KERNELS
+from rvggt_jax.ops.kernels.tpu_flash import tpu_flash_attention
 
-IMPLEMENTATIONS = ("blocked", "xla", "cudnn")
+IMPLEMENTATIONS = KERNELS
 
 # A key bias this negative removes the key: exp(NEG_BIAS - max) is exactly 0 in float32,
 # and, being finite, a row whose keys are all removed can never turn into NaN.
 NEG_BIAS = -1.0e4
 
+_KERNEL = contextvars.ContextVar("rvggt_attention_kernel", default="auto")
 
-def default_implementation(dtype: Any = jnp.float32) -> str:
-    """"cudnn" for bfloat16/float16 operands on a GPU, else "blocked" (cuDNN's fused
-    kernel takes no float32; the blocked kernel keeps float32 memory bounded anywhere)."""
-    half = jnp.dtype(dtype) in (jnp.dtype(jnp.bfloat16), jnp.dtype(jnp.float16))
-    return "cudnn" if half and jax.default_backend() == "gpu" else "blocked"
+
+def check_kernel(name: str, dtype: Any = None) -> str:
+    """`name` if it is a kernel (and takes `dtype`, when given), else a ValueError naming
+    the choices."""
+    if name not in KERNELS:
+        raise ValueError(f"attention kernel (implementation) must be one of {KERNELS}; got {name!r}")
+    if dtype is not None and name in HALF_ONLY and not _is_half(dtype):
+        raise ValueError(f"the {name!r} attention kernel takes bfloat16/float16 only; got {jnp.dtype(dtype).name} "
+                         f"(for float32 use 'auto' or 'blocked'; choices: {KERNELS})")
+    return name
+
+
+@contextlib.contextmanager
+def kernel_scope(name: str) -> Iterator[None]:
+    """Every `attention` traced inside takes the kernel `name` (unless it names its own)."""
+    token = _KERNEL.set(check_kernel(name))
+    try:
+        yield
+    finally:
+        _KERNEL.reset(token)
+
+
+def current_kernel() -> str:
+    """The kernel `attention` takes here: the innermost `kernel_scope`'s, else "auto"."""
+    return _KERNEL.get()
+
+
+def kernel_for(platform: str, dtype: Any, head_dim: int) -> str:
+    """The kernel "auto" takes in a program compiled for `platform` ("cpu", "cuda",
+    "rocm", "tpu") with operands of `dtype` and head dimension `head_dim`."""
+    if platform == "cuda" and _is_half(dtype) and head_dim + 2 <= CUDNN_MAX_HEAD_DIM:
+        return "cudnn"
+    if platform == "tpu" and head_dim + 2 <= 128:
+        return "tpu_flash"
+    # CPUs; float32 on a GPU (cuDNN takes none); ROCm: the blocked kernel, memory bounded
+    return "blocked"
+
+
+@functools.cache
+def compilable_platforms() -> tuple[str, ...]:
+    """The platforms besides the CPU that this installation can compile for, each of whose
+    kernels can be traced here: "cuda" with JAX's CUDA plugin and cuDNN's libraries,
+    "tpu" with libtpu (the `[plan]` extra installs both)."""
+    platforms = []
+    try:
+        from jax._src.cudnn.fused_attention_stablehlo import check_cudnn_version
+        check_cudnn_version()
+        platforms.append("cuda")
+    except Exception:  # noqa: BLE001 - no CUDA plugin or no cuDNN: nothing to compile for
+        pass
+    if importlib.util.find_spec("libtpu") is not None:
+        platforms.append("tpu")
+    return tuple(platforms)
 
 
 def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None, *,
@@ -54,26 +123,69 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
 
     q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv]; key_bias None or [B, Nk] (added
     to every query's logits; NEG_BIAS removes a key). Returns [B, Nq, H, Dv] in q's
-    dtype. `scale` defaults to 1/sqrt(D); `implementation` to `default_implementation()`.
+    dtype. `scale` defaults to 1/sqrt(D); `implementation` to `current_kernel()`.
     """
     if implementation is None:
-        implementation = default_implementation(q.dtype)
-    if implementation not in IMPLEMENTATIONS:
-        raise ValueError(f"attention implementation must be one of {IMPLEMENTATIONS}; got {implementation!r}")
+        implementation = current_kernel()
+        # a scope's 16-bit-only kernel is the aggregator's; float32 attention (the heads) takes "auto"
+        if implementation in HALF_ONLY and not _is_half(q.dtype):
+            implementation = "auto"
+    check_kernel(implementation)
+    _check_operands(q, k, v, key_bias)
+    scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
+    bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
+    block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
+    if implementation != "auto":
+        return _run(check_kernel(implementation, q.dtype), q, k, v, bias32, scale, block_bytes)
+    branches = {}
+    for platform in compilable_platforms():
+        name = kernel_for(platform, q.dtype, q.shape[-1])
+        if name != "blocked":
+            branches[platform] = functools.partial(_run, name, q, k, v, bias32, scale, block_bytes)
+    if not branches:
+        return _run("blocked", q, k, v, bias32, scale, block_bytes)
+    return jax.lax.platform_dependent(
+        cpu=functools.partial(_run, "blocked", q, k, v, bias32, scale, block_bytes),
+        default=functools.partial(_run, "blocked", q, k, v, bias32, scale, block_bytes), **branches)
+
+
+def attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
+                       block_bytes: int | None = None, out_dtype: Any = None) -> tuple[jax.Array, jax.Array]:
+    """(attention [B, Nq, H, Dv] in `out_dtype` (default q's), the log-sum-exp of every
+    query's logits [B, Nq, H] float32): what ring attention folds partial results with.
+    The blocked kernel on every platform (its 16-bit workaround on a CPU only): cuDNN's
+    and the TPU kernel's softmax statistics are not public API (docs/accelerators.md)."""
+    block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
+    bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
+
+    def run(bits):
+        return lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=bits)
+
+    return on_cpu(run(True), run(False))
+
+
+def _run(name: str, q, k, v, bias32, scale: float, block_bytes: int) -> jax.Array:
+    """Kernel `name` on checked operands (see `attention`)."""
+    if name == "blocked":
+        return on_cpu(lambda: blocked_attention(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype),
+                      lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, bits=False)[0].astype(q.dtype))
+    if name == "tpu_flash":
+        return tpu_flash_attention(q, k, v, bias32, scale, NEG_BIAS)
+    return fused_attention(q, k, v, bias32, scale, name)
+
+
+def _is_half(dtype: Any) -> bool:
+    return jnp.dtype(dtype) in (jnp.dtype(jnp.bfloat16), jnp.dtype(jnp.float16))
+
+
+def _check_operands(q, k, v, key_bias) -> None:
     if q.ndim != 4 or k.ndim != 4 or v.ndim != 4:
         raise ValueError(f"attention takes [B, N, H, D] operands; got {q.shape}, {k.shape}, {v.shape}")
-    b, nq, h, d = q.shape
+    b, _, h, d = q.shape
     if k.shape[:3] != (b, k.shape[1], h) or v.shape[:3] != k.shape[:3] or k.shape[-1] != d:
         raise ValueError(f"attention operands disagree: q {q.shape}, k {k.shape}, v {v.shape}")
     if key_bias is not None and key_bias.shape != (b, k.shape[1]):
         raise ValueError(f"key_bias must be [B, Nk] = {(b, k.shape[1])}; got {key_bias.shape}")
-    scale = 1.0 / math.sqrt(d) if scale is None else float(scale)
-    bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
-
-    if implementation == "blocked":
-        block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
-        return blocked_attention(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype)
-    return fused_attention(q, k, v, bias32, scale, implementation)
 
 
 def log_sizes(sizes: jax.Array, valid: jax.Array | None = None) -> jax.Array:

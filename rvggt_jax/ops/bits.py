@@ -5,10 +5,18 @@ operand to float32 first (and, for a loop-invariant operand, hoists that copy ou
 loop), and moves a bfloat16 collective in float32. Slicing, gathering or moving the bits
 is exact and converts only what is used. Why and what it saves: docs/memory_layout.md.
 
+    on_cpu(cpu, other)        cpu() when compiling for a CPU, other() for any other platform
     as_bits(op, x, *index)    op (a slice, gather or move of x) applied to x's bits
-    moved(op, x, *index)      the same for 16-bit floats, op itself for any other dtype
-    Bits16                    a 16-bit buffer held as bits (the kept layers, blocked K/V)
+    moved(op, x, *index)      as_bits for 16-bit floats compiled for a CPU, op itself otherwise
+    Bits16                    a 16-bit buffer held as bits (the kept layers, the blocked
+                              kernel's K/V on a CPU)
     read_buffer(buf, op, ...) op on a plain array or a `Bits16` buffer
+
+GPUs and TPUs slice, gather and move 16-bit floats natively, so the ops take the plain
+form there (`on_cpu`: the choice is made when the program is lowered for its platform,
+not from the host's default backend). The kept layers' buffer stays `Bits16` on every
+platform: its type is fixed when the program is traced, before the platform is known,
+and a bit view costs nothing on an accelerator (it fuses into the slice reading it).
 """
 
 from __future__ import annotations
@@ -43,10 +51,21 @@ def _as_bits_jvp(op, primals, tangents):
     return as_bits(op, x, *index), op(tangents[0], *index)
 
 
+def on_cpu(cpu, other):
+    """`cpu()` in a program compiled for a CPU, `other()` in one compiled for any other
+    platform: `jax.lax.platform_dependent`, which lowers only the branch of the platform
+    the program is lowered for (a program traced on a CPU host and compiled for a GPU
+    takes `other`). Both are traced; their results must have the same types."""
+    return jax.lax.platform_dependent(cpu=cpu, default=other)
+
+
 def moved(op, x: jax.Array, *index) -> jax.Array:
     """`op(x, *index)` for an op that only moves x's values (a slice, gather, permute, a
-    psum with one non-zero term): on x's bits when x is a 16-bit float (`as_bits`)."""
-    return as_bits(op, x, *index) if is_16bit_float(x) else op(x, *index)
+    psum with one non-zero term): on x's bits when x is a 16-bit float compiled for a
+    CPU (`as_bits`), the op itself on other platforms and for other dtypes."""
+    if not is_16bit_float(x):
+        return op(x, *index)
+    return on_cpu(lambda: as_bits(op, x, *index), lambda: op(x, *index))
 
 
 @jax.tree_util.register_pytree_node_class

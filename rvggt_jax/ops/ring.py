@@ -9,8 +9,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rvggt_jax.ops.kernels import blocked
-from rvggt_jax.ops.kernels.blocked import blocked_attention
+from rvggt_jax.ops.attention import attention_with_lse
 from rvggt_jax.ops.shards import FrameShards
 
 
@@ -29,11 +28,9 @@ def ring_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array
     one device: the own keys, then the extra ones, folded the same way."""
     d = q.shape[-1]
     scale = 1.0 / math.sqrt(d) if scale is None else float(scale)
-    block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
 
     def part(kk, vv, bb):
-        bias = None if bb is None else bb.astype(jnp.float32)
-        return blocked_attention(q, kk, vv, bias, scale, block_bytes, jnp.float32)
+        return attention_with_lse(q, kk, vv, bb, scale, block_bytes, jnp.float32)
 
     def fold(acc, new):
         (o, lse), (o2, lse2) = acc, new

@@ -53,10 +53,12 @@ def softmax_attend(q: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | 
 
 
 def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
-             block_bytes: int, out_dtype: Any = None) -> tuple[jax.Array, jax.Array]:
+             block_bytes: int, out_dtype: Any = None, *, bits: bool = True) -> tuple[jax.Array, jax.Array]:
     """The cache-blocked kernel. q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv], key_bias
     [B, Nk] float32 or None -> ([B, Nq, H, Dv] (float32 when in one block, else
-    `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H] float32)."""
+    `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H] float32).
+    bits: hold 16-bit operands as `Bits16` in the loop (XLA:CPU's workaround; the attention
+    op passes False for the programs it compiles for other platforms)."""
     b, nq, h, d = q.shape
     nk, dv = k.shape[1], v.shape[-1]
     qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)  # [B, H, Nq, D]
@@ -72,7 +74,7 @@ def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Ar
     kt, vt = kt.reshape(b * h, d, nk), vt.reshape(b * h, nk, dv)
     # 16-bit operands as bits from the start (a bit view made in the loop is hoisted out
     # of it as a copy of the operand)
-    qb, kt, vt = (Bits16.of(t) if is_16bit_float(t) else t for t in (qb, kt, vt))
+    qb, kt, vt = (Bits16.of(t) if bits and is_16bit_float(t) else t for t in (qb, kt, vt))
 
     def index(t, i):
         return read_buffer(t, lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)

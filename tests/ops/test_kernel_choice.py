@@ -1,0 +1,114 @@
+"""The attention kernel is chosen for the platform a program is compiled for (issue 24):
+lowered here, on a CPU host, for an H200 and a TPU v6e without either (the `[plan]`
+extra), the programs hold cuDNN's and the Pallas TPU kernel; the CPU program holds
+neither. Explicit kernels, their checks, and the TPU kernel's folded bias and padding
+against the reference (Pallas' interpreter, on this CPU)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rvggt_jax.ops import attention as attn
+from rvggt_jax.ops.kernels import tpu_flash
+from tests.helpers.attention_reference import reference_attention
+from tests.helpers.deviceless import device, on
+
+CUDNN = "__cudnn$fmha"  # cuDNN's fused attention custom call
+TPU_KERNEL = "tpu_custom_call"  # a Mosaic (Pallas TPU) kernel
+
+
+def _lowered(fn, dev, dtype, nq=40, nk=56, h=2, d=16):
+    args = [on(dev, (1, n, h, d), dtype) if dev is not None else jax.ShapeDtypeStruct((1, n, h, d), dtype)
+            for n in (nq, nk, nk)]
+    bias = (jax.ShapeDtypeStruct((1, nk), jnp.float32) if dev is None else on(dev, (1, nk), jnp.float32))
+    return jax.jit(fn).lower(*args, bias).as_text()
+
+
+def _auto(q, k, v, b):
+    return attn.attention(q, k, v, b)
+
+
+def test_auto_table():
+    assert attn.kernel_for("cuda", jnp.bfloat16, 64) == "cudnn"
+    assert attn.kernel_for("cuda", jnp.float32, 64) == "blocked"  # cuDNN takes no float32
+    assert attn.kernel_for("tpu", jnp.float32, 64) == "tpu_flash"
+    assert attn.kernel_for("cpu", jnp.bfloat16, 64) == "blocked"
+    assert attn.kernel_for("cuda", jnp.bfloat16, 127) == "blocked"  # + the bias columns: over cuDNN's 128
+
+
+def test_the_plan_extra_makes_both_accelerators_compilable():
+    # CI installs the extra: a missing plugin must fail here, not skip the checks below
+    assert set(attn.compilable_platforms()) == {"cuda", "tpu"}
+
+
+def test_gpu_program_takes_cudnn_for_bfloat16_and_no_cpu_workaround():
+    text = _lowered(_auto, device("h200"), jnp.bfloat16)
+    assert CUDNN in text and TPU_KERNEL not in text
+    assert "ui16" not in text  # the XLA:CPU bit views stay out of the GPU program
+
+
+def test_gpu_program_in_float32_takes_the_bounded_blocked_kernel():
+    text = _lowered(_auto, device("h200"), jnp.float32)
+    assert CUDNN not in text and TPU_KERNEL not in text
+
+
+def test_tpu_program_takes_the_pallas_kernel():
+    for dtype in (jnp.float32, jnp.bfloat16):
+        text = _lowered(_auto, device("tpu-v6e"), dtype)
+        assert TPU_KERNEL in text and CUDNN not in text and "ui16" not in text
+
+
+def test_cpu_program_keeps_the_blocked_kernel_and_its_bit_views():
+    # small logits blocks: the kernel's loop, whose 16-bit operands it reads as bits
+    text = _lowered(lambda q, k, v, b: attn.attention(q, k, v, b, block_bytes=4096), None, jnp.bfloat16)
+    assert CUDNN not in text and TPU_KERNEL not in text
+    assert "ui16" in text
+
+
+def test_a_scope_or_an_argument_overrides_auto():
+    def scoped(q, k, v, b):
+        with attn.kernel_scope("blocked"):
+            return attn.attention(q, k, v, b)
+
+    assert CUDNN not in _lowered(scoped, device("h200"), jnp.bfloat16)
+    assert CUDNN in _lowered(lambda q, k, v, b: attn.attention(q, k, v, b, implementation="cudnn"),
+                             device("h200"), jnp.bfloat16)
+
+
+def test_bad_kernels_are_named():
+    q = jnp.zeros((1, 4, 1, 8), jnp.float32)
+    with pytest.raises(ValueError, match="bfloat16/float16 only.*'auto'"):
+        attn.attention(q, q, q, implementation="cudnn")
+    with pytest.raises(ValueError, match="tpu_flash"):
+        with attn.kernel_scope("flash"):
+            pass
+
+
+def test_a_scoped_half_only_kernel_leaves_float32_attention_to_auto():
+    q = jnp.asarray(np.random.default_rng(0).standard_normal((1, 5, 1, 8)), jnp.float32)
+    with attn.kernel_scope("cudnn"):
+        out = attn.attention(q, q, q)  # float32 (a head): "auto", no error
+    np.testing.assert_allclose(out, reference_attention(q, q, q), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype, tol", [(jnp.float32, 2e-6), (jnp.bfloat16, 2e-2)])
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_tpu_kernel_folds_the_bias_and_pads(monkeypatch, dtype, tol, with_bias):
+    # Pallas' interpreter runs the TPU kernel on this CPU: odd lengths (padded to 128
+    # rows, padded keys removed by the bias column), a size bias with empty slots
+    from jax.experimental import pallas as pl
+
+    call = pl.pallas_call
+    monkeypatch.setattr(pl, "pallas_call", lambda *a, **k: call(*a, **{**k, "interpret": True}))
+    rng = np.random.default_rng(1)
+    q, k, v = (rng.standard_normal((2, n, 2, 16)).astype(np.float32) for n in (50, 130, 130))
+    sizes = np.floor(4 * rng.random((2, 130)))
+    bias = attn.log_sizes(jnp.asarray(sizes), jnp.asarray(sizes > 0)) if with_bias else None
+    out = tpu_flash.tpu_flash_attention(*(jnp.asarray(x, dtype) for x in (q, k, v)), bias, 0.25, attn.NEG_BIAS)
+    assert out.shape == (2, 50, 2, 16) and out.dtype == dtype
+    cast = [np.asarray(jnp.asarray(x, dtype).astype(jnp.float32)) for x in (q, k, v)]
+    ref = reference_attention(*cast, None if bias is None else np.asarray(bias)[:, None, None, :])  # 1/sqrt(16) = 0.25
+    np.testing.assert_allclose(np.asarray(out.astype(jnp.float32)), ref, rtol=tol, atol=tol)
