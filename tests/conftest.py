@@ -2,6 +2,7 @@
 produced by the upstream PyTorch VGGT; see tests/data/README.md). Plain helpers (paths,
 `rel_err`, references) are in tests/helpers/."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,14 @@ from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker
 # The suite runs CPU convolutions as the `rvggt` command does (multi-threaded; `import
 # rvggt_jax` alone leaves XLA's default, tests/ops/test_xla_cpu.py): before any backend.
 rvggt_jax.prefer_threaded_convolutions()
+# The suite runs on the CPU. With the [plan] extra installed, JAX would also start its CUDA
+# and TPU clients and warn that there is no such device; the deviceless compiles of
+# tests/ops/test_kernel_choice.py need no client.
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# libtpu (deviceless TPU compiles) holds a lock file per process: both xdist workers may
+# compile for a TPU at once.
+os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
+os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")
 
 
 @pytest.fixture(scope="session")
