@@ -112,3 +112,33 @@ def test_tpu_kernel_folds_the_bias_and_pads(monkeypatch, dtype, tol, with_bias):
     cast = [np.asarray(jnp.asarray(x, dtype).astype(jnp.float32)) for x in (q, k, v)]
     ref = reference_attention(*cast, None if bias is None else np.asarray(bias)[:, None, None, :])  # 1/sqrt(16) = 0.25
     np.testing.assert_allclose(np.asarray(out.astype(jnp.float32)), ref, rtol=tol, atol=tol)
+
+
+def _forward_text(tiny, dev, dtype, kernel="auto"):
+    from rvggt_jax.model.forward import rvggt_forward
+    from rvggt_jax.planning.memory import abstract_params
+
+    _, config = tiny
+    cfg = config.with_compression("regime").with_dtype(dtype).with_attention(kernel)
+    params = jax.tree.map(lambda a: on(dev, a.shape, a.dtype), abstract_params(cfg, param_dtype=dtype))
+    images = on(dev, (1, 3, 3, 28, 42), jnp.float32)
+    return jax.jit(rvggt_forward, static_argnums=2).lower(params, images, cfg).as_text()
+
+
+def test_whole_forward_for_each_target(tiny):
+    # regime: the frame, global, merged (size bias) and K/V-downsampled layers, DINO and
+    # the camera trunk all take the target's kernel
+    gpu = _forward_text(tiny, device("h200"), "bfloat16")
+    assert gpu.count(CUDNN) >= 4 and TPU_KERNEL not in gpu
+    tpu = _forward_text(tiny, device("tpu-v6e"), "float32")
+    assert tpu.count(TPU_KERNEL) >= 3 and CUDNN not in tpu
+    assert CUDNN not in _forward_text(tiny, device("h200"), "bfloat16", "blocked")
+
+
+@pytest.mark.parametrize("kernel, dtype, message", [
+    ("cudnn", "float32", "bfloat16 only"), ("flash", "bfloat16", "must be one of"),
+])
+def test_config_names_a_kernel_the_target_cannot_run(tiny, kernel, dtype, message):
+    _, config = tiny
+    with pytest.raises(ValueError, match=message):
+        config.with_dtype(dtype).with_attention(kernel)
