@@ -222,13 +222,10 @@ def worker_plan(spec: dict) -> None:
     from jax.experimental import topologies
 
     from rvggt_jax.model.forward import rvggt_forward
-    from rvggt_jax.ops import attention
     from rvggt_jax.planning.memory import abstract_params
 
-    # jax.default_backend() stays "cpu" here, so the model would pick the CPU kernel for
-    # the GPU target: pick as it does on a GPU (cuDNN for half precision)
-    attention.default_implementation = lambda dtype=jnp.float32: (
-        "cudnn" if jnp.dtype(dtype) in (jnp.dtype(jnp.bfloat16), jnp.dtype(jnp.float16)) else "blocked")
+    # (the attention kernel follows the target, not this host's CPU backend: "auto" in
+    # rvggt_jax.ops.attention picks cuDNN for bf16 in a program compiled for a GPU)
     dev = topologies.get_topology_desc(platform="cuda", target_config=TARGET.read_text(),
                                        topology="1x1x1").devices[0]
     where = jax.sharding.SingleDeviceSharding(dev)
