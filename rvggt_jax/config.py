@@ -114,6 +114,9 @@ class VGGTConfig:
     # Output requests (static, so they live here): extra entries of rvggt_forward's dict.
     return_saliency: bool = False  # "saliency" [B,S,h*w] (Psi) and "patch_tokens" [B*S,h*w,C]
     return_layers: tuple[int, ...] = ()  # "aggregated_XX" [B,S,P,2C] for these layers
+    # "images" [B,S,3,H,W]: a copy of the input, which upstream always returns; on request
+    # here (2.3 GiB of float32 at 1000 frames of 392 x 518, for what the caller has already)
+    return_images: bool = False
     # Compute dtype of the aggregator (patch embed, frame and global blocks), as upstream's
     # torch.autocast: "float32" (exact, the default) or "bfloat16". The heads always run
     # in float32. See docs/method.md ("Mixed precision").
@@ -181,9 +184,10 @@ class VGGTConfig:
         """The published facebook/VGGT-1B layout."""
         return cls()
 
-    def with_outputs(self, saliency: bool = False, layers: tuple[int, ...] = ()) -> "VGGTConfig":
-        """A copy that also returns the saliency / these aggregator layers."""
-        return replace(self, return_saliency=saliency, return_layers=tuple(layers))
+    def with_outputs(self, saliency: bool = False, layers: tuple[int, ...] = (), images: bool = False
+                     ) -> "VGGTConfig":
+        """A copy that also returns the saliency / these aggregator layers / the input images."""
+        return replace(self, return_saliency=saliency, return_layers=tuple(layers), return_images=bool(images))
 
     def with_dtype(self, dtype: Any) -> "VGGTConfig":
         """A copy computing the aggregator in `dtype` ("float32" or "bfloat16")."""

@@ -117,10 +117,11 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
     Returns (B is added when the input had none), as upstream:
       pose_enc [B,S,9], pose_enc_list (list of [B,S,9], one per camera-head iteration),
       depth [B,S,H,W,1], depth_conf [B,S,H,W], world_points [B,S,H,W,3],
-      world_points_conf [B,S,H,W], images [B,S,3,H,W];
+      world_points_conf [B,S,H,W];
       with query points: track [B,S,N,2], vis [B,S,N], conf [B,S,N];
       on request (config.with_outputs): saliency [B,S,h*w], patch_tokens [B*S,h*w,C],
-      aggregated_XX [B,S,P,2C].
+      aggregated_XX [B,S,P,2C], images [B,S,3,H,W] (upstream always returns this copy of
+      the input; here only with `with_outputs(images=True)`).
     """
     images, query_points = check_inputs(params, images, config, query_points)
     return forward_frames(params, images, config, query_points)
@@ -173,11 +174,12 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
         tracks, vis, conf = track_head(params["track_head"], agg, config.track_head_config, grid, query_points,
                                        shards=shards)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
-    # The returned images are a copy of the input (an argument cannot be an output): made
-    # from the last head output (x 1, exact) so that XLA makes it at the end, not at the
-    # program start where it would sit through the whole forward.
-    last = jax.tree.leaves(out)
-    out["images"] = images * (1.0 + zeros_from((), jnp.float32, last[-1])) if last else images
+    if config.return_images:
+        # A copy of the input (an argument cannot be an output): made from the last head
+        # output (x 1, exact) so that XLA makes it at the end, not at the program start
+        # where it would sit through the whole forward.
+        last = jax.tree.leaves(out)
+        out["images"] = images * (1.0 + zeros_from((), jnp.float32, last[-1])) if last else images
     if config.return_saliency:
         out["saliency"], out["patch_tokens"] = saliency, patch_tokens
     for i in config.return_layers:

@@ -24,6 +24,10 @@ def outputs(tiny, golden):
     return jax.tree.map(np.asarray, out)
 
 
+def test_input_images_are_returned_only_on_request(outputs):
+    assert "images" not in outputs  # 2.3 GiB at 1000 frames: with_outputs(images=True)
+
+
 def test_patch_embed_tokens(outputs, golden):
     assert rel_err(outputs["patch_tokens"], golden["dino_patch_tokens"]) <= TOL
 
@@ -92,8 +96,9 @@ def test_cache_blocking_leaves_every_output_at_parity(tiny, golden, monkeypatch)
 def test_unbatched_input_gets_a_batch_axis(tiny, golden):
     params, config = tiny
     images = golden["images"][0, :2]  # [S, 3, H, W]
-    out = jax.jit(rvggt_forward)(params, images, config)
+    out = jax.jit(rvggt_forward)(params, images, config.with_outputs(images=True))
     s, _, h, w = images.shape
+    np.testing.assert_array_equal(out["images"], images[None])  # the copy, on request
     assert out["depth"].shape == (1, s, h, w, 1)
     assert out["world_points"].shape == (1, s, h, w, 3)
     assert out["pose_enc"].shape == (1, s, 9)
