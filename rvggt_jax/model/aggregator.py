@@ -21,9 +21,10 @@ from rvggt_jax import compression
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model import layers
 from rvggt_jax.model.global_block import dense_global_block
-from rvggt_jax.model.kept import KeptLayer, kept_buffer, kept_slots, write_slot
+from rvggt_jax.model.kept import KeptLayer, kept_buffer, kept_slots, stored, write_slot
 from rvggt_jax.model.params import Params
 from rvggt_jax.model.patch_embed import patch_embed_tokens
+from rvggt_jax.ops.ordering import with_dependency
 from rvggt_jax.ops.shards import FrameShards
 
 
@@ -179,7 +180,9 @@ def _scan_layers(p: Params, carry: tuple, group: tuple[int, ...], slot: np.ndarr
         x = layers.block(p_frame, x.reshape(b * s, num_tokens, c), config.num_heads, frame_pos,
                          config.rope_freq, dtype=dtype)
         kept_frame = write_slot(kept_frame, x.reshape(b, s, num_tokens, c), k, dtype)
-        x = x.reshape(b, s * num_tokens, c)
+        # the global block updates x in place: after the kept write has read it (else XLA
+        # copies the 4 GiB stream at 1000 frames for the write; docs/memory_layout.md)
+        x = with_dependency(x.reshape(b, s * num_tokens, c), stored(kept_frame))
         if state is None:
             x = dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
         else:

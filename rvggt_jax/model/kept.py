@@ -107,6 +107,12 @@ def kept_buffer(shape: tuple[int, ...], dtype, dep: jax.Array):
     return zeros_from(shape, dtype, dep)
 
 
+def stored(buf) -> jax.Array:
+    """The array holding a kept buffer's values (a `Bits16` buffer's bits, not its shadow,
+    which a forward without derivatives never makes): what to order later work after."""
+    return buf.bits if isinstance(buf, Bits16) else buf
+
+
 def write_slot(buf, x: jax.Array, k: jax.Array, dtype):
     """buf with slot k set to x in the compute dtype (in place). (lax's dynamic update,
     not .at[k].set: the latter is a scatter that XLA lowers with a bounds check, out of
