@@ -201,7 +201,7 @@ IMPORT_RULES = {
     "compression": {"config", "ops", "model"},
     "parallel": {"config", "ops", "model"},
     "weights": {"config", "model.params"},
-    "planning": {"config", "compression", "model", "parallel", "weights"},
+    "planning": {"config", "ops", "compression", "model", "parallel", "weights"},
     "io": {"geometry"},
     "eval": {"geometry", "io", "model", "weights"},
     "train": {"config", "geometry", "eval", "model", "synthetic", "weights"},

@@ -1,3 +1,4 @@
 """What a forward will cost before it runs: FLOPs from the static plans (`cost`) and
-XLA's memory plan of the compiled program (`memory`).
+XLA's memory plan of the compiled program (`memory`), also for a GPU or TPU that is not
+here (`targets`: XLA's own compilers for named accelerators, without the device).
 """

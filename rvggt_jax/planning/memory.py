@@ -1,30 +1,44 @@
 """Memory of a forward pass before running it: XLA's own buffer assignment.
 
     rep = rvggt_jax.memory_report(config.with_compression("regime").with_dtype("bfloat16"),
-                                  frames=1000, height=392, width=518)
-    rep.total_bytes, rep.temp_bytes, str(rep)
+                                  frames=1000, height=392, width=518, target="h200")
+    rep.total_bytes, rep.temp_bytes, rep.fits, str(rep)
 
 The forward is lowered and compiled for abstract inputs (`jax.ShapeDtypeStruct`) on the
-default backend (or `backend`): nothing runs and no weights are needed, so 1000 frames of
-VGGT-1B can be planned on a laptop. Peak = arguments + outputs + temporaries - aliased,
-the figure XLA allocates for the program (the device also holds its runtime and, for a
-CPU, the Python process).
+default backend (or `backend`), or for a named accelerator that need not be here
+(`target`: XLA's GPU and TPU compilers run on this host, `rvggt_jax.planning.targets`):
+nothing runs and no weights are needed, so 1000 frames of VGGT-1B can be planned on a
+laptop. Peak = arguments + outputs + temporaries - aliased, the figure XLA allocates for
+the program (the device also holds its runtime and, for a CPU, the Python process).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.planning.targets import MEMORY_LIMIT_ENV, GiB, get_target, host_memory_bytes
+
+# what the attention kernels leave in a lowered program (docs/accelerators.md)
+KERNEL_MARKS = (("__cudnn$fmha", "cudnn"), ("tpu_custom_call", "tpu_flash"))
 
 
 @dataclasses.dataclass(frozen=True)
 class MemoryReport:
-    """XLA's memory plan of one compiled forward, in bytes."""
+    """XLA's memory plan of one compiled forward, in bytes (per device over a mesh).
+
+    With a target: `target` (its name), `memory_bytes` (what the plan is held against,
+    `memory_what` says what that is), `device_kind` (the device XLA compiled for: which
+    description), `attention` (the kernel in the program: "cudnn", "tpu_flash" or
+    "blocked"), `fits` and `headroom_bytes`. XLA:TPU refuses a program larger than its
+    HBM: such a report has `needed_bytes` (the figure of XLA's message, to 0.01 GiB) and
+    None for the four parts, which XLA never assigned.
+    """
 
     frames: int
     height: int
@@ -33,26 +47,62 @@ class MemoryReport:
     dtype: str
     param_dtype: str
     preset: str
-    argument_bytes: int  # parameters + images (+ query points)
-    output_bytes: int
-    temp_bytes: int
-    alias_bytes: int
+    argument_bytes: int | None  # parameters + images (+ query points)
+    output_bytes: int | None
+    temp_bytes: int | None
+    alias_bytes: int | None
     compile_seconds: float
     # the compiled forward itself, callable as compiled(params, images [B, S, 3, H, W],
     # config): a run after the check need not compile again
     compiled: Any = dataclasses.field(default=None, compare=False, repr=False)
+    target: str | None = None
+    memory_bytes: int | None = None
+    memory_what: str = ""
+    device_kind: str | None = None
+    attention: str | None = None
+    devices: int = 1
+    needed_bytes: int | None = None
+
+    @property
+    def exhausted(self) -> bool:
+        """Whether XLA refused to compile the program for lack of memory (XLA:TPU)."""
+        return self.needed_bytes is not None
 
     @property
     def total_bytes(self) -> int:
-        """Peak bytes XLA plans for the program: arguments + outputs + temporaries - aliased."""
+        """Peak bytes XLA plans for the program: arguments + outputs + temporaries - aliased
+        (XLA's figure of what it needed when it refused the program)."""
+        if self.exhausted:
+            return self.needed_bytes
         return self.argument_bytes + self.output_bytes + self.temp_bytes - self.alias_bytes
+
+    @property
+    def fits(self) -> bool | None:
+        """Whether the plan fits the target's memory (None: no target, or its memory unknown)."""
+        if self.exhausted:
+            return False
+        return None if self.memory_bytes is None else self.total_bytes <= self.memory_bytes
+
+    @property
+    def headroom_bytes(self) -> int | None:
+        """The target's memory less the plan (negative: short by that much)."""
+        return None if self.memory_bytes is None else self.memory_bytes - self.total_bytes
 
     def __str__(self) -> str:
         gb = 1e9
-        return (f"{self.preset} {self.dtype} (params {self.param_dtype}), {self.batch} x {self.frames} frames of "
-                f"{self.height} x {self.width}: {self.total_bytes / gb:.1f} GB (arguments "
-                f"{self.argument_bytes / gb:.1f}, outputs {self.output_bytes / gb:.1f}, temporaries "
-                f"{self.temp_bytes / gb:.1f})")
+        per = f" on each of {self.devices} devices" if self.devices > 1 else ""
+        head = (f"{self.preset} {self.dtype} (params {self.param_dtype}), {self.batch} x {self.frames} frames of "
+                f"{self.height} x {self.width}: {self.total_bytes / gb:.1f} GB{per}")
+        if self.exhausted:
+            body = " (XLA refused it: more than the device's memory)"
+        else:
+            body = (f" (arguments {self.argument_bytes / gb:.1f}, outputs {self.output_bytes / gb:.1f}, "
+                    f"temporaries {self.temp_bytes / gb:.1f})")
+        if self.target is None:
+            return head + body
+        verdict = {True: "fits", False: "does not fit", None: "memory unknown"}[self.fits]
+        have = "" if self.memory_bytes is None else f" of {self.memory_bytes / GiB:.1f} GiB"
+        return head + body + f" for {self.target}{have}: {verdict}"
 
 
 def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:
@@ -65,9 +115,16 @@ def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype
     return cast_params(tree, param_dtype)
 
 
+def attention_kernel(program_text: str) -> str:
+    """The attention kernel a lowered or compiled program holds: "cudnn", "tpu_flash" or
+    "blocked" (neither custom call)."""
+    return next((name for mark, name in KERNEL_MARKS if mark in program_text), "blocked")
+
+
 def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
                   dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
-                  backend: str | None = None, mesh: Any = None) -> MemoryReport:
+                  backend: str | None = None, mesh: Any = None, target: Any = None,
+                  devices: int = 1) -> MemoryReport:
     """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
     `height` x `width` (multiples of the patch size) under `config`, without running it.
 
@@ -75,16 +132,23 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     weight dtype (default: the compute dtype). query_points > 0 includes the track head.
     mesh: plan `sharded_forward` over this mesh's "frames" axis instead (the figures are
     then per device: replicated parameters, this device's frames and exchanges).
+    target: a name of `rvggt_jax.planning.targets.TARGETS` ("h200", "tpu-v6e", "cpu", ...)
+    or a `Target`: compile for it, here, without the device (the `[plan]` extra), over
+    `devices` of them (frames split as with `mesh`), and hold the plan against its memory
+    (`fits`). Raises `UnknownTargetError` naming the choices, `CompilerMissingError`
+    saying what to install.
     """
-    from rvggt_jax.model.forward import InputError, rvggt_forward
-
-    import time
+    from rvggt_jax.model.forward import InputError
 
     if min(frames, height, width, batch) <= 0:
         raise InputError(f"frames, height, width and batch must be positive; got {frames}, {height}, {width}, {batch}")
     ps = config.patch_size
     if height % ps or width % ps:
         raise InputError(f"image height and width must be multiples of the patch size {ps}; got {height} x {width}")
+    if target is not None and (mesh is not None or backend is not None):
+        raise ValueError("give a target, or a mesh / backend, not both")
+    if target is None and devices != 1:
+        raise ValueError("devices > 1 needs a target (or pass a mesh)")
     if dtype is not None:
         config = config.with_dtype(dtype)
     param_dtype = config.dtype if param_dtype is None else jnp.dtype(param_dtype).name
@@ -92,25 +156,70 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     params = abstract_params(config, with_track=with_track, param_dtype=param_dtype)
     images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), jnp.float32)
     queries = jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32) if with_track else None
+    fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype,
+                  param_dtype=param_dtype, preset=config.compression.name)
+    if target is not None:
+        return _target_report(config, params, images, queries, get_target(target), devices, fields)
     t0 = time.perf_counter()
-    if mesh is None:
-        jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
-        compiled = jitted.lower(params, images, config, *((queries,) if with_track else ())).compile()
-    else:
-        compiled = _sharded_plan(params, images, config, queries, mesh)
+    compiled = _lower(params, images, config, queries, mesh, backend).compile()
+    return _report(compiled, time.perf_counter() - t0, fields)
+
+
+def _lower(params, images, config, queries, mesh, backend=None, device=None):
+    """The forward lowered for the abstract inputs: on `device` (inputs placed there), as
+    `sharded_forward` over `mesh`, or on `backend` / the default backend."""
+    from rvggt_jax.model.forward import rvggt_forward
+
+    if mesh is not None:
+        return _sharded_lowering(params, images, config, queries, mesh)
+    extra = () if queries is None else (queries,)
+    if device is not None:
+        where = jax.sharding.SingleDeviceSharding(device)
+        params, images, extra = jax.tree.map(
+            lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=where), (params, images, extra))
+    jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
+    return jitted.lower(params, images, config, *extra)
+
+
+def _report(compiled, seconds: float, fields: dict, **more) -> MemoryReport:
     m = compiled.memory_analysis()
-    seconds = time.perf_counter() - t0
-    return MemoryReport(
-        frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, param_dtype=param_dtype,
-        preset=config.compression.name, argument_bytes=int(m.argument_size_in_bytes),
-        output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
-        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled)
+    return MemoryReport(**fields, argument_bytes=int(m.argument_size_in_bytes),
+                        output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
+                        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled, **more)
 
 
-def _sharded_plan(params, images, config, queries, mesh):
-    """`sharded_forward` over `mesh` compiled for abstract inputs placed as
-    `rvggt_jax.parallel.sharded.input_shardings` places them; the compiled program takes (params, images,
-    config[, query_points])."""
+def _target_report(config, params, images, queries, target, devices: int, fields: dict) -> MemoryReport:
+    """`memory_report` for `target` (a `Target`) over `devices` of its devices."""
+    import numpy as np
+
+    from rvggt_jax.parallel.sharded import FRAMES_AXIS
+    from rvggt_jax.planning.targets import exhausted_hbm, target_devices
+
+    devs = target_devices(target, devices)
+    mesh = None if devices == 1 else jax.sharding.Mesh(np.asarray(devs), (FRAMES_AXIS,),
+                                                       axis_types=(jax.sharding.AxisType.Auto,))
+    have, what = target.memory()
+    t0 = time.perf_counter()
+    lowered = _lower(params, images, config, queries, mesh, device=devs[0])
+    more = dict(target=target.name, memory_bytes=have, memory_what=what, device_kind=devs[0].device_kind,
+                devices=devices, attention=attention_kernel(lowered.as_text()))
+    try:
+        compiled = lowered.compile(compiler_options=target.options() or None)
+    except Exception as e:  # noqa: BLE001 - XLA's runtime error types move between versions
+        exhausted = exhausted_hbm(str(e))
+        if exhausted is None:
+            raise
+        needed, available = exhausted
+        return MemoryReport(**fields, argument_bytes=None, output_bytes=None, temp_bytes=None, alias_bytes=None,
+                            compile_seconds=time.perf_counter() - t0, needed_bytes=needed,
+                            **{**more, "memory_bytes": have or available})
+    return _report(compiled, time.perf_counter() - t0, fields, **more)
+
+
+def _sharded_lowering(params, images, config, queries, mesh):
+    """`sharded_forward` over `mesh` lowered for abstract inputs placed as
+    `rvggt_jax.parallel.sharded.input_shardings` places them; compiled, the program takes
+    (params, images, config[, query_points])."""
     import functools
 
     from rvggt_jax.parallel.sharded import input_shardings, sharded_forward
@@ -119,14 +228,12 @@ def _sharded_plan(params, images, config, queries, mesh):
     params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), params)
     images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=split)
     extra = () if queries is None else (jax.ShapeDtypeStruct(queries.shape, queries.dtype, sharding=replicated),)
-    return jax.jit(functools.partial(sharded_forward, mesh=mesh)).lower(params, images, config, *extra).compile()
+    return jax.jit(functools.partial(sharded_forward, mesh=mesh)).lower(params, images, config, *extra)
 
 
 # ---------------------------------------------------------------------------------------
 # Will it fit? (used by `rvggt reconstruct` before it runs anything)
 # ---------------------------------------------------------------------------------------
-
-MEMORY_LIMIT_ENV = "RVGGT_MEMORY_LIMIT_GB"
 
 
 class InsufficientMemoryError(RuntimeError):
@@ -139,13 +246,8 @@ def device_memory_bytes() -> tuple[int | None, str]:
     (CPU); (None, ...) when unknown."""
     import os
 
-    limit = os.environ.get(MEMORY_LIMIT_ENV)
-    if limit:
-        try:
-            value = float(limit)
-        except ValueError:
-            raise ValueError(f"{MEMORY_LIMIT_ENV} must be a number of GB; got {limit!r}") from None
-        return int(value * 1e9), f"the limit {MEMORY_LIMIT_ENV}={limit}"
+    if os.environ.get(MEMORY_LIMIT_ENV):
+        return host_memory_bytes()  # the limit
     try:
         dev = jax.devices()[0]
         stats = dev.memory_stats() if hasattr(dev, "memory_stats") else None
@@ -153,17 +255,7 @@ def device_memory_bytes() -> tuple[int | None, str]:
             return int(stats["bytes_limit"]), f"this {dev.platform.upper()} ({dev.device_kind})"
     except Exception:  # noqa: BLE001 - a backend without memory stats: fall back to the host
         pass
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024, "this machine (available RAM)"
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "this machine (RAM)"
-    except (ValueError, OSError, AttributeError):
-        return None, "this machine"
+    return host_memory_bytes()
 
 
 def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, param_dtype: Any = None,

@@ -14,3 +14,16 @@ def micro_config(**overrides) -> VGGTConfig:
                 track_head=TrackHeadConfig(features=8, hidden_size=16, corr_levels=2, corr_radius=1, iters=2))
     base.update(overrides)
     return VGGTConfig(**base).validate()
+
+
+def plan_config(head: str = "camera") -> VGGTConfig:
+    """The smallest forward the memory plans compile (deviceless, for each target, in a
+    few seconds): 2 layers of `micro_config`, one head, "camera" (one trunk block, one
+    iteration) or "depth" (the DPT head: its small float32 gemms are what XLA's GPU compiler
+    cannot tile for Ampere without `NO_TRITON_GEMM`)."""
+    if head not in ("camera", "depth"):
+        raise ValueError(f"head must be 'camera' or 'depth'; got {head!r}")
+    return micro_config(depth=2, enable_camera=head == "camera", enable_depth=head == "depth", enable_point=False,
+                        enable_track=False, camera_head=CameraHeadConfig(num_heads=2, trunk_depth=1, iters=1),
+                        dpt_head=DPTHeadConfig(features=8, out_channels=(4, 8, 16, 16),
+                                               intermediate_layer_idx=(0, 1, 1, 1)))
