@@ -16,8 +16,9 @@ Parts, each caught and reported (a failing part never stops the next):
    the median of timed runs after one warm-up, the device's peak bytes, XLA's plan of the
    same compiled program, and whether it calls cuDNN's flash attention (`__cudnn$fmha`).
    Each program runs in a fresh process (JAX cannot reset a device's peak) with a timeout.
-4. plan: the same programs compiled deviceless for the H200 (`benchmarks/h200.txtpb`,
-   JAX_PLATFORMS=cpu, XLA's CUDA compiler on the host), in the background while 2-3 run.
+4. plan: the same programs compiled deviceless for the H200 (`rvggt_jax.planning.targets`'
+   "h200": XLA's h200.txtpb, shipped in rvggt_jax/planning/gpu_specs/; JAX_PLATFORMS=cpu,
+   XLA's CUDA compiler on the host), in the background while 2-3 run.
 
 The report goes to stdout and to --out (default $OUT, else ./gpu_check_out) as
 gpu_check.json and gpu_check.md; the last line is a one-line summary.
@@ -39,7 +40,7 @@ from pathlib import Path
 # The parent process never imports jax: a CUDA client would preallocate most of the GPU
 # and starve the workers. Workers import it (after sys.path gets the repository).
 REPO = Path(__file__).resolve().parents[1]
-TARGET = Path(__file__).resolve().parent / "h200.txtpb"  # XLA's H200 spec (see /work/shared/accel)
+TARGET = "h200"  # the deviceless plan's target (rvggt_jax.planning.targets)
 TINY = REPO / "tests" / "data" / "vggt_tiny"
 RESULT = "GPU_CHECK_RESULT "  # prefix of each result line a worker prints
 FMHA = "__cudnn$fmha"
@@ -219,15 +220,14 @@ def worker_plan(spec: dict) -> None:
     plan and attention kernel of each, one RESULT line per program."""
     import jax
     import jax.numpy as jnp
-    from jax.experimental import topologies
 
     from rvggt_jax.model.forward import rvggt_forward
     from rvggt_jax.planning.memory import abstract_params
+    from rvggt_jax.planning.targets import target_device
 
     # (the attention kernel follows the target, not this host's CPU backend: "auto" in
     # rvggt_jax.ops.attention picks cuDNN for bf16 in a program compiled for a GPU)
-    dev = topologies.get_topology_desc(platform="cuda", target_config=TARGET.read_text(),
-                                       topology="1x1x1").devices[0]
+    dev = target_device(TARGET)
     where = jax.sharding.SingleDeviceSharding(dev)
     for prog in spec["programs"]:
         try:
