@@ -11,6 +11,9 @@ in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
                                           tiny RANDOM-weight model (seconds)
     rvggt finetune DATA_DIR --out DIR     fine-tune on images + cameras (+ depth); see
                                           docs/training.md (`rvggt_jax.train`)
+    rvggt plan --frames N --target T      will it fit? XLA's memory plan for a GPU or TPU
+                                          that need not be here (exit 0 fits, 3 does not;
+                                          `rvggt_jax.app.plan_command`)
     rvggt --version
 
 `reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
@@ -107,9 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from rvggt_jax.app.eval_command import add_eval_parser
     from rvggt_jax.app.finetune_command import add_finetune_parser
+    from rvggt_jax.app.plan_command import add_plan_parser
 
     add_eval_parser(sub)
     add_finetune_parser(sub)
+    add_plan_parser(sub)
     return parser
 
 
@@ -212,6 +217,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from rvggt_jax.app.finetune_command import run_finetune_command
 
             run_finetune_command(args)
+        elif args.command == "plan":
+            from rvggt_jax.app.plan_command import run_plan_command
+
+            return run_plan_command(args)
         return 0
     except CLIError as e:
         if os.environ.get("RVGGT_DEBUG"):
