@@ -12,6 +12,12 @@
 
        python benchmarks/bench_memory.py plan --frames 1000 --dtypes bfloat16 --param-dtype float32
 
+   `--target` compiles for accelerators that need not be here (XLA's GPU and TPU
+   compilers on this host, the `[plan]` extra; names in `rvggt_jax.planning.targets`) and
+   holds each plan against the target's memory, in GiB:
+
+       python benchmarks/bench_memory.py plan --frames 1000 --target h200 tpu-v6e --presets dense regime
+
 2. A real run on this CPU of a small layout (24 layers of width 64, one head of 64, DINO
    depth 1, small heads; random weights) on 168 x 224 images: wall time (median of the
    repeats, the presets interleaved) of the whole forward and of the aggregator alone (the
@@ -58,6 +64,8 @@ def random_params(config: VGGTConfig, seed: int = 0) -> dict:
 
 
 def plan(args) -> list[str]:
+    if args.target:
+        return plan_targets(args)
     cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
     rows = ["| S | preset | dtype | weights | total GB | arguments GB | outputs GB | temporaries GB | vs dense |",
             "|---:|---|---|---|---:|---:|---:|---:|---:|"]
@@ -77,6 +85,37 @@ def plan(args) -> list[str]:
                 print(row, flush=True)
                 rows.append(row)
                 gc.collect()
+    return rows
+
+
+def plan_targets(args) -> list[str]:
+    """The plan of every target x frames x dtype x preset, held against the target's memory."""
+    cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
+    gib = 2 ** 30
+
+    def cell(b):
+        return "n/a" if b is None else f"{b / gib:.2f}"
+
+    rows = ["| target | S | preset | dtype | weights | arguments GiB | outputs GiB | temporaries GiB | total GiB | "
+            "memory GiB | fits | attention | compile s |",
+            "|---|---:|---|---|---|---:|---:|---:|---:|---:|---|---|---:|"]
+    for target in args.target:
+        for s in args.frames:
+            for dtype in args.dtypes:
+                param_dtype = dtype if args.param_dtype == "compute" else args.param_dtype
+                for preset in args.presets:
+                    rep = rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height, args.width,
+                                                  dtype=dtype, param_dtype=param_dtype, target=target,
+                                                  devices=args.devices)
+                    fits = {True: "yes", False: "no (XLA:TPU refused it)" if rep.exhausted else "no",
+                            None: "?"}[rep.fits]
+                    row = (f"| {rep.target}{f' x{rep.devices}' if rep.devices > 1 else ''} | {s} | {preset} | "
+                           f"{dtype} | {rep.param_dtype} | {cell(rep.argument_bytes)} | {cell(rep.output_bytes)} | "
+                           f"{cell(rep.temp_bytes)} | {cell(rep.total_bytes)} | {cell(rep.memory_bytes)} | {fits} | "
+                           f"{rep.attention or 'n/a'} | {rep.compile_seconds:.0f} |")
+                    print(row, flush=True)
+                    rows.append(row)
+                    gc.collect()
     return rows
 
 
@@ -146,6 +185,10 @@ def main(argv=None) -> None:
     p.add_argument("--param-dtype", default="compute", choices=["compute", "float32", "bfloat16"],
                    help="the aggregator's weight dtype: the compute dtype (as `load_pretrained(..., "
                         "param_dtype=...)` and the CLI load them; default) or a fixed one")
+    p.add_argument("--target", nargs="+", default=None, metavar="T",
+                   help="compile for these accelerators without them (h200, tpu-v6e, ...; "
+                        "rvggt_jax.planning.targets) and hold each plan against its memory")
+    p.add_argument("--devices", type=int, default=1, help="with --target: frames split over N of its devices")
     r = sub.add_parser("run", help="a real CPU run of the small layout")
     r.add_argument("--frames", type=int, nargs="+", default=[64, 128, 256])
     r.add_argument("--presets", nargs="+", default=["dense", "regime"])
@@ -158,6 +201,10 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.mode == "run":  # timed
         rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
+    if args.mode == "plan" and args.target:  # deviceless: no device client (as `rvggt plan`)
+        from rvggt_jax.app.plan_command import use_host_compilers
+
+        use_host_compilers()
     print(f"jax {jax.__version__}, {jax.devices()[0].device_kind}, {jax.device_count()} device(s)", flush=True)
     rows = plan(args) if args.mode == "plan" else run(args)
     if args.out:
