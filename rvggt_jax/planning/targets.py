@@ -21,8 +21,8 @@ import re
 from importlib import resources
 from typing import Any
 
-__all__ = ["CompilerMissingError", "TARGETS", "Target", "UnknownTargetError", "exhausted_hbm", "get_target",
-           "target_device", "target_devices"]
+__all__ = ["CompilerMissingError", "TARGETS", "Target", "UnknownTargetError", "description_text", "exhausted_hbm",
+           "get_target", "host_memory_bytes", "target_device", "target_devices"]
 
 GiB = 2 ** 30
 PLATFORMS = ("cuda", "tpu", "cpu")
@@ -49,7 +49,7 @@ class Target:
     platform: "cuda", "tpu" or "cpu" (this host).
     memory_bytes: what a plan is held against: a GPU's memory, the HBM XLA:TPU lets a
     program use; None for "cpu" (this machine's available RAM, read when asked).
-    description: a GPU's XLA target description, a file of gpu_specs/.
+    description: a GPU's XLA target description, a file of gpu_specs/ (or an absolute path).
     tpu_type: a TPU's libtpu type ("v6e", "v5e", "v5p"); chip_config its chip
     configuration ("megacore" for v5p: two cores as one device).
     compiler_options: XLA options every compile for the target takes, as (name, value)
@@ -202,8 +202,23 @@ def _tpu_shape(target: Target, n: int) -> tuple[str, tuple[int, int, int]]:
     return f"{target.tpu_type}:{'x'.join(map(str, dims))}", bounds
 
 
+def description_text(target: Target) -> str:
+    """The text of a GPU target's XLA description: a file of gpu_specs/, or a path to one."""
+    import os
+
+    if os.path.isabs(target.description):
+        with open(target.description) as f:
+            return f.read()
+    spec = resources.files("rvggt_jax.planning").joinpath("gpu_specs", target.description)
+    if not spec.is_file():
+        raise FileNotFoundError(f"target {target.name!r}: no description {target.description!r} in "
+                                f"rvggt_jax/planning/gpu_specs/ (a broken install, or give an absolute path)")
+    return spec.read_text()
+
+
 @functools.cache
 def _devices(target: Target, n: int) -> tuple[Any, ...]:
+    """`target_devices` after its checks, cached per (target, n)."""
     import jax
     from jax.experimental import topologies
 
@@ -216,9 +231,9 @@ def _devices(target: Target, n: int) -> tuple[Any, ...]:
     if target.platform == "cuda" and n > 8 and n % 8:
         raise ValueError(f"more than 8 GPUs must be whole hosts of 8; got {n}")
     shape, bounds = _tpu_shape(target, n) if target.platform == "tpu" else (None, None)
+    text = description_text(target) if target.platform == "cuda" else None
     try:
         if target.platform == "cuda":
-            text = resources.files("rvggt_jax.planning").joinpath("gpu_specs", target.description).read_text()
             # slices x hosts x GPUs per host: 8 GPUs to a host
             layout = f"1x1x{n}" if n <= 8 else f"1x{n // 8}x8"
             topo = topologies.get_topology_desc(platform="cuda", target_config=text, topology=layout)

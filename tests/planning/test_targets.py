@@ -139,6 +139,15 @@ def test_slices_of_several_devices():
         tg.target_devices("h200", 12)
 
 
+def test_a_target_of_ones_own_reads_its_description_from_a_path(tmp_path):
+    spec = tmp_path / "my_h200.txtpb"
+    spec.write_text(tg.description_text(tg.TARGETS["h200"]).replace("NVIDIA H200 141GB HBM3e", "my H200"))
+    mine = tg.Target("my-h200", "my H200 at 100 GiB", "cuda", 100 * GiB, description=str(spec))
+    assert tg.target_device(mine).device_kind == "my H200"
+    with pytest.raises(FileNotFoundError, match="no description 'gone.txtpb'"):
+        tg.target_device(dataclasses.replace(mine, description="gone.txtpb"))
+
+
 @pytest.mark.parametrize("name, module", [("h100", "jax_cuda12_plugin"), ("tpu-v5p", "libtpu")])
 def test_a_missing_compiler_says_what_to_install(monkeypatch, name, module):
     monkeypatch.setitem(sys.modules, module, None)  # the import fails, as when not installed
