@@ -14,6 +14,7 @@ arguments, 1 when the planning itself fails (e.g. the compilers are not installe
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 
@@ -91,6 +92,7 @@ def _config(args: argparse.Namespace):
         base = VGGTConfig.vggt_1b() if args.config is None else VGGTConfig.from_json(args.config)
     except (OSError, ValueError, TypeError) as e:
         _fail(f"cannot read --config {args.config}: {e}")
+    base = dataclasses.replace(base, enable_track=False)  # no query points: the forward runs no tracker
     ps = base.patch_size
     for name in ("height", "width"):
         v = getattr(args, name)
