@@ -168,6 +168,9 @@ def suggestions(rep, target, params: int) -> list[tuple[str, str]]:
     if 1 <= fit < rep.frames:
         out.append((f"--max-frames {fit}", f"about {fmt_bytes(int(params + rest * fit / rep.frames))} at {fit} "
                                            "frames (memory grows about linearly with the frames)"))
+    elif fit < 1:
+        out.append(("smaller images or a larger target",
+                    f"one frame needs about {fmt_bytes(int(params + rest / rep.frames))}"))
     if target.platform != "cpu":
         n = max(rep.devices + 1, math.ceil(rep.devices * rest / budget))
         if target.platform == "tpu":
@@ -177,6 +180,16 @@ def suggestions(rep, target, params: int) -> list[tuple[str, str]]:
         each = params + rest * rep.devices / n
         out.append((f"--devices {n}", f"the frames split over {n} devices: about {fmt_bytes(int(each))} each"))
     return out
+
+
+def memory_fraction_note(rep, target) -> str | None:
+    """For a GPU plan that fits but needs more than JAX's default share of the card: the
+    XLA_PYTHON_CLIENT_MEM_FRACTION to run with (None otherwise)."""
+    if target.platform != "cuda" or not rep.fits or rep.total_bytes <= JAX_GPU_FRACTION * rep.memory_bytes:
+        return None
+    need = math.ceil(100 * rep.total_bytes / rep.memory_bytes) / 100
+    return (f"note: JAX lets XLA use {JAX_GPU_FRACTION:.0%} of a GPU's memory unless told otherwise: run with "
+            f"XLA_PYTHON_CLIENT_MEM_FRACTION={min(need + 0.02, 0.99):.2f} (or more)")
 
 
 def _verify(args, config, rep, option: str) -> str:
@@ -217,10 +230,9 @@ def run_plan_command(args: argparse.Namespace) -> int:
         return 0
     if rep.fits:
         print(f"FITS: {fmt_bytes(rep.headroom_bytes)} to spare.", flush=True)
-        if target.platform == "cuda" and rep.total_bytes > JAX_GPU_FRACTION * rep.memory_bytes:
-            need = math.ceil(100 * rep.total_bytes / rep.memory_bytes) / 100
-            print(f"note: JAX lets XLA use {JAX_GPU_FRACTION:.0%} of a GPU's memory unless told otherwise: run with "
-                  f"XLA_PYTHON_CLIENT_MEM_FRACTION={min(need + 0.02, 0.99):.2f} (or more)", flush=True)
+        note = memory_fraction_note(rep, target)
+        if note:
+            print(note, flush=True)
         return 0
     print(f"DOES NOT FIT: needs {fmt_bytes(rep.total_bytes)}, {target.name} has {fmt_bytes(rep.memory_bytes)} "
           f"(short by {fmt_bytes(-rep.headroom_bytes)}). What would fit (estimates, each alone):", flush=True)

@@ -77,6 +77,20 @@ def test_suggested_frames_and_devices_follow_the_linear_estimate():
     assert "--dtype bfloat16" in gpu and "--preset regime" in gpu and "--devices 3" in gpu
     heavy = dict(pc.suggestions(_report(param_dtype="float32"), tg.TARGETS["tpu-v6e"], params=40 * gib))
     assert list(heavy) == ["--param-dtype bfloat16", "a larger target"]
+    # 1000 frames at 80 GiB, but one frame at 1000 x the pixels: not even one fits
+    huge = dict(pc.suggestions(_report(frames=1, needed_bytes=80 * gib), tg.TARGETS["cpu"], params=2 * gib))
+    assert list(huge) == ["smaller images or a larger target"]
+
+
+def test_a_gpu_plan_above_jaxs_default_share_says_which_fraction_to_run_with():
+    gib = 2 ** 30
+    h200 = tg.TARGETS["h200"]
+    fits = dict(needed_bytes=None, argument_bytes=10 * gib, output_bytes=10 * gib, alias_bytes=0, target="h200",
+                memory_bytes=h200.memory_bytes)
+    assert pc.memory_fraction_note(_report(**fits, temp_bytes=80 * gib), h200) is None  # 71%
+    note = pc.memory_fraction_note(_report(**fits, temp_bytes=105 * gib), h200)  # 88.7%
+    assert "XLA_PYTHON_CLIENT_MEM_FRACTION=0.91" in note
+    assert pc.memory_fraction_note(_report(**fits, temp_bytes=105 * gib), tg.TARGETS["tpu-v6e"]) is None
 
 
 @pytest.mark.parametrize("args, message", [
