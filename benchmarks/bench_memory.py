@@ -66,31 +66,42 @@ def random_params(config: VGGTConfig, seed: int = 0) -> dict:
 def plan(args) -> list[str]:
     if args.target:
         return plan_targets(args)
-    cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
     rows = ["| S | preset | dtype | weights | total GB | arguments GB | outputs GB | temporaries GB | vs dense |",
             "|---:|---|---|---|---:|---:|---:|---:|---:|"]
+    dense_total = None
+    for s, dtype, preset, rep in _reports(args):
+        if preset == args.presets[0]:
+            dense_total = None  # a new (frames, dtype) group
+        if preset == "dense":
+            dense_total = rep.total_bytes
+        ratio = f"{rep.total_bytes / dense_total:.2f}x" if dense_total else ""
+        rows.append(_print(f"| {s} | {preset} | {dtype} | {rep.param_dtype} | {rep.total_bytes / 1e9:.1f} | "
+                           f"{rep.argument_bytes / 1e9:.1f} | {rep.output_bytes / 1e9:.1f} | "
+                           f"{rep.temp_bytes / 1e9:.1f} | {ratio} |"))
+    return rows
+
+
+def _reports(args, **target):
+    """(frames, dtype, preset, `memory_report`) of VGGT-1B (no track head) for every
+    frames x dtype x preset of the arguments, in that order."""
+    cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
     for s in args.frames:
         for dtype in args.dtypes:
-            dense_total = None
             param_dtype = dtype if args.param_dtype == "compute" else args.param_dtype
             for preset in args.presets:
-                rep = rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height, args.width, dtype=dtype,
-                                              param_dtype=param_dtype)
-                if preset == "dense":
-                    dense_total = rep.total_bytes
-                ratio = f"{rep.total_bytes / dense_total:.2f}x" if dense_total else ""
-                row = (f"| {s} | {preset} | {dtype} | {rep.param_dtype} | {rep.total_bytes / 1e9:.1f} | "
-                       f"{rep.argument_bytes / 1e9:.1f} | {rep.output_bytes / 1e9:.1f} | {rep.temp_bytes / 1e9:.1f} | "
-                       f"{ratio} |")
-                print(row, flush=True)
-                rows.append(row)
+                yield s, dtype, preset, rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height,
+                                                                args.width, dtype=dtype, param_dtype=param_dtype,
+                                                                **target)
                 gc.collect()
-    return rows
+
+
+def _print(row: str) -> str:
+    print(row, flush=True)
+    return row
 
 
 def plan_targets(args) -> list[str]:
     """The plan of every target x frames x dtype x preset, held against the target's memory."""
-    cfg = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False)
     gib = 2 ** 30
 
     def cell(b):
@@ -100,22 +111,13 @@ def plan_targets(args) -> list[str]:
             "memory GiB | fits | attention | compile s |",
             "|---|---:|---|---|---|---:|---:|---:|---:|---:|---|---|---:|"]
     for target in args.target:
-        for s in args.frames:
-            for dtype in args.dtypes:
-                param_dtype = dtype if args.param_dtype == "compute" else args.param_dtype
-                for preset in args.presets:
-                    rep = rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height, args.width,
-                                                  dtype=dtype, param_dtype=param_dtype, target=target,
-                                                  devices=args.devices)
-                    fits = {True: "yes", False: "no (XLA:TPU refused it)" if rep.exhausted else "no",
-                            None: "?"}[rep.fits]
-                    row = (f"| {rep.target}{f' x{rep.devices}' if rep.devices > 1 else ''} | {s} | {preset} | "
-                           f"{dtype} | {rep.param_dtype} | {cell(rep.argument_bytes)} | {cell(rep.output_bytes)} | "
-                           f"{cell(rep.temp_bytes)} | {cell(rep.total_bytes)} | {cell(rep.memory_bytes)} | {fits} | "
-                           f"{rep.attention or 'n/a'} | {rep.compile_seconds:.0f} |")
-                    print(row, flush=True)
-                    rows.append(row)
-                    gc.collect()
+        for s, dtype, preset, rep in _reports(args, target=target, devices=args.devices):
+            fits = {True: "yes", False: "no (XLA:TPU refused it)" if rep.exhausted else "no", None: "?"}[rep.fits]
+            rows.append(_print(
+                f"| {rep.target}{f' x{rep.devices}' if rep.devices > 1 else ''} | {s} | {preset} | {dtype} | "
+                f"{rep.param_dtype} | {cell(rep.argument_bytes)} | {cell(rep.output_bytes)} | "
+                f"{cell(rep.temp_bytes)} | {cell(rep.total_bytes)} | {cell(rep.memory_bytes)} | {fits} | "
+                f"{rep.attention or 'n/a'} | {rep.compile_seconds:.0f} |"))
     return rows
 
 
