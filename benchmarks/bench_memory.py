@@ -91,7 +91,7 @@ def _reports(args, **target):
             for preset in args.presets:
                 yield s, dtype, preset, rvggt_jax.memory_report(cfg.with_compression(preset), s, args.height,
                                                                 args.width, dtype=dtype, param_dtype=param_dtype,
-                                                                **target)
+                                                                image_dtype=args.images, **target)
                 gc.collect()
 
 
@@ -187,6 +187,8 @@ def main(argv=None) -> None:
     p.add_argument("--param-dtype", default="compute", choices=["compute", "float32", "bfloat16"],
                    help="the aggregator's weight dtype: the compute dtype (as `load_pretrained(..., "
                         "param_dtype=...)` and the CLI load them; default) or a fixed one")
+    p.add_argument("--images", default="uint8", choices=["uint8", "float32"],
+                   help="the images' dtype in the program: uint8 as `rvggt reconstruct` passes them (default)")
     p.add_argument("--target", nargs="+", default=None, metavar="T",
                    help="compile for these accelerators without them (h200, tpu-v6e, ...; "
                         "rvggt_jax.planning.targets) and hold each plan against its memory")

@@ -187,6 +187,8 @@ _STAGES = ("loading weights", "checking memory", "running the model", "decoding 
 def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, options: ReconstructOptions) -> dict:
     """`reconstruct_folder` once the inputs are chosen and the output folder is ready:
     load the images, then the model, check the memory, run, decode, write."""
+    from rvggt_jax.io.images import network_images
+
     images, infos, chosen = _load_inputs(chosen, options)
     s, _, h, w = images.shape
     t0 = time.perf_counter()
@@ -194,7 +196,8 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         stage(0)
         params, config = _model_for(local_weights, weights, options)
         stage(1)
-        report, mesh = _check_memory(config, (s, h, w), options)
+        # the images go in as uint8 (exact, `network_images`): plan and compile for that
+        report, mesh = _check_memory(config, (s, h, w), options, network_images(images).dtype)
         stage(2)
         out = run_model(params, images, config, weights, compiled=report.compiled, mesh=mesh)
         stage(3)
@@ -275,7 +278,7 @@ def _model_for(local_weights, weights, options: ReconstructOptions):
     return params, config
 
 
-def _check_memory(config, shape: tuple[int, int, int], options: ReconstructOptions):
+def _check_memory(config, shape: tuple[int, int, int], options: ReconstructOptions, image_dtype="float32"):
     """`(report, mesh)`: XLA's own plan of this forward for `shape` = (frames, height,
     width) (compiled, not run; the run uses the same compiled program), so that a forward
     that does not fit is refused before running rather than dying in the middle."""
@@ -284,7 +287,7 @@ def _check_memory(config, shape: tuple[int, int, int], options: ReconstructOptio
     enable_compilation_cache()
     mesh = devices_mesh(options.devices)
     try:
-        report = check_fits(config, *shape, param_dtype=options.dtype, mesh=mesh)
+        report = check_fits(config, *shape, param_dtype=options.dtype, mesh=mesh, image_dtype=image_dtype)
     except (InsufficientMemoryError, ValueError) as e:
         raise CLIError(str(e)) from None
     return report, mesh

@@ -60,8 +60,10 @@ class Reconstruction:
 def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.ndarray]:
     """The forward pass on images [S, 3, H, W] -> numpy outputs of batch element 0
     (`pose_enc`, `depth`, `depth_conf`, and `world_points(_conf)` with the point head).
-    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`,
-    of the sharded forward when `mesh` is given); `mesh`: split the frames over its
+    Images that are exactly some v / 255 (as `load_images` makes them) go in as uint8
+    (`network_images`): `compiled`, the forward already compiled for these shapes
+    (`MemoryReport.compiled`, of the sharded forward when `mesh` is given), must then
+    be compiled for uint8 images; `mesh`: split the frames over its
     "frames" axis (`rvggt_jax.sharded_forward`)."""
     import functools
 
@@ -73,7 +75,9 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
     if missing:
         raise ValueError(f"the model has no {' / '.join(missing)} head; a reconstruction needs the camera and "
                          f"depth heads")
-    batch = jax.numpy.asarray(images)[None]
+    from rvggt_jax.io.images import network_images
+
+    batch = jax.numpy.asarray(network_images(images))[None]
     forward = rvggt_forward
     if mesh is not None:
         from rvggt_jax.parallel.sharded import input_shardings, sharded_forward

@@ -48,6 +48,9 @@ def add_plan_parser(sub) -> None:
     p.add_argument("--param-dtype", default=None, choices=("float32", "bfloat16"),
                    help="the aggregator's weight dtype (default: the compute dtype, as `rvggt reconstruct` loads it)")
     p.add_argument("--batch", type=int, default=1, metavar="B", help="sequences in one forward (default 1)")
+    p.add_argument("--images", default="uint8", choices=("uint8", "float32"),
+                   help="the images' dtype in the program: uint8 as `rvggt reconstruct` passes them (default), "
+                        "float32 for images in [0, 1] from Python (4x the bytes)")
     p.add_argument("--devices", type=int, default=1, metavar="N",
                    help="split the frames over N devices of the target (the figures are per device; default 1)")
     p.add_argument("--attention", default="auto", metavar="KERNEL",
@@ -126,8 +129,8 @@ def param_bytes(config, param_dtype: str) -> int:
 def _describe(rep, target, label: str) -> list[str]:
     """The plan's lines: what was planned, for what, and its parts."""
     per = f" (per device, {rep.devices} devices)" if rep.devices > 1 else ""
-    lines = [f"{label}, {rep.batch} x {rep.frames} frames of {rep.height} x {rep.width}, preset {rep.preset}, "
-             f"{rep.dtype} (weights {rep.param_dtype})",
+    lines = [f"{label}, {rep.batch} x {rep.frames} frames of {rep.height} x {rep.width} ({rep.image_dtype}), "
+             f"preset {rep.preset}, {rep.dtype} (weights {rep.param_dtype})",
              f"  target       {target.name}: {target.title}, compiled for {target.described_by} "
              f"({rep.device_kind}){per}"]
     if target.note:
@@ -198,7 +201,7 @@ def _verify(args, config, rep, option: str) -> str:
 
     frames = int(option.split()[-1])
     check = memory_report(config, frames, args.height, args.width, batch=args.batch, param_dtype=rep.param_dtype,
-                          target=args.target, devices=args.devices)
+                          target=args.target, devices=args.devices, image_dtype=args.images)
     verdict = "fits" if check.fits else "does not fit either: lower it further"
     return f"  checked: {frames} frames need {fmt_bytes(check.total_bytes)}: {verdict}"
 
@@ -219,7 +222,7 @@ def run_plan_command(args: argparse.Namespace) -> int:
     label = "VGGT-1B" if args.config is None else f"the model of {args.config}"
     try:
         rep = memory_report(config, args.frames, args.height, args.width, batch=args.batch, param_dtype=param_dtype,
-                            target=target, devices=args.devices)
+                            target=target, devices=args.devices, image_dtype=args.images)
     except CompilerMissingError as e:
         _fail(str(e), code=1)
     except ValueError as e:  # devices the target cannot have, sizes the model refuses

@@ -41,6 +41,7 @@ __all__ = [
     "find_images",
     "load_images",
     "load_images_with_info",
+    "network_images",
     "preprocessed_size",
 ]
 
@@ -276,6 +277,22 @@ def load_images(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_
     `load_and_preprocess_images(paths, mode)` (up to the departures in the module doc);
     see `load_images_with_info`."""
     return load_images_with_info(paths, mode, exif_orientation=exif_orientation)[0]
+
+
+def network_images(images: np.ndarray) -> np.ndarray:
+    """The smallest exact form of images [..., 3, H, W] for the forward: uint8 when every
+    value is some v / 255 in float32 (as `load_images` makes them; the forward scales
+    uint8 back bit for bit), else float32. A quarter of the bytes in and on the device:
+    0.57 instead of 2.27 GiB for 1000 frames of 392 x 518."""
+    images = np.asarray(images)
+    if images.dtype == np.uint8:
+        return images
+    images = images.astype(np.float32, copy=False)
+    if images.size and np.all(np.isfinite(images)) and images.min() >= 0.0 and images.max() <= 1.0:
+        u8 = np.rint(images * np.float32(255.0)).astype(np.uint8)
+        if np.array_equal(u8.astype(np.float32) / np.float32(255.0), images):
+            return u8
+    return images
 
 
 def find_images(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:

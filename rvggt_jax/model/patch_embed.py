@@ -161,6 +161,21 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
     return x, num_prefix, saliency
 
 
+UNIT_OF_UINT8 = np.arange(256, dtype=np.float32) / np.float32(255.0)  # [256]: v -> v / 255
+
+
+def unit_images(images: jax.Array) -> jax.Array:
+    """Images as `check_images` returns them -> float32 in [0, 1]: uint8 / 255 in
+    float32, the same division upstream's ToTensor (and `load_images`) does, so a uint8
+    input gives bit for bit the outputs of its float32 form."""
+    if images.dtype == jnp.uint8:
+        # A table of the 256 quotients, divided on the host: XLA rewrites a division by
+        # a constant (or a broadcast scalar) into a multiplication by its reciprocal,
+        # which rounds 1 in ~3 values differently from the division
+        return jnp.asarray(UNIT_OF_UINT8)[images]
+    return images
+
+
 def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] -> (patch tokens [B*S, h*w, C], Psi [B, S, h*w])."""
     x, num_prefix, saliency = patch_embed_tokens(p, images, config)
@@ -168,9 +183,10 @@ def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
 
 
 def patch_embed_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
-    """images [B, S, 3, H, W] in [0, 1] -> (DINO tokens [B*S, 1 + R + h*w, C] with the
-    patch tokens after the prefix of 1 + R, the prefix length, Psi [B, S, h*w])."""
+    """images [B, S, 3, H, W] (float in [0, 1] or uint8, `forward.check_images`) ->
+    (DINO tokens [B*S, 1 + R + h*w, C] with the patch tokens after the prefix of 1 + R,
+    the prefix length, Psi [B, S, h*w])."""
     b, s, c, hh, ww = images.shape
-    x = (images - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
+    x = (unit_images(images) - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
     tokens, num_prefix, saliency = dino_tokens(p, x.reshape(b * s, c, hh, ww), config)
     return tokens, num_prefix, saliency.reshape(b, s, -1)

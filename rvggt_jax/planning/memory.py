@@ -62,6 +62,7 @@ class MemoryReport:
     attention: str | None = None
     devices: int = 1
     needed_bytes: int | None = None
+    image_dtype: str = "float32"  # the images' dtype in the program (uint8: 1/4 of the bytes)
 
     @property
     def exhausted(self) -> bool:
@@ -92,7 +93,8 @@ class MemoryReport:
         gb = 1e9
         per = f" on each of {self.devices} devices" if self.devices > 1 else ""
         head = (f"{self.preset} {self.dtype} (params {self.param_dtype}), {self.batch} x {self.frames} frames of "
-                f"{self.height} x {self.width}: {self.total_bytes / gb:.1f} GB{per}")
+                f"{self.height} x {self.width}{' uint8' if self.image_dtype == 'uint8' else ''}: "
+                f"{self.total_bytes / gb:.1f} GB{per}")
         if self.exhausted:
             body = " (XLA refused it: more than the device's memory)"
         else:
@@ -124,12 +126,14 @@ def attention_kernel(program_text: str) -> str:
 def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
                   dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
                   backend: str | None = None, mesh: Any = None, target: Any = None,
-                  devices: int = 1) -> MemoryReport:
+                  devices: int = 1, image_dtype: Any = "float32") -> MemoryReport:
     """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
     `height` x `width` (multiples of the patch size) under `config`, without running it.
 
     dtype: the compute dtype (default `config.dtype`); param_dtype: the aggregator's
     weight dtype (default: the compute dtype). query_points > 0 includes the track head.
+    image_dtype: "float32" (images in [0, 1]) or "uint8" (the form `rvggt reconstruct`
+    passes, `io.images.network_images`: a quarter of the argument bytes).
     mesh: plan `sharded_forward` over this mesh's "frames" axis instead (the figures are
     then per device: replicated parameters, this device's frames and exchanges).
     target: a name of `rvggt_jax.planning.targets.TARGETS` ("h200", "tpu-v6e", "cpu", ...)
@@ -154,9 +158,12 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     param_dtype = config.dtype if param_dtype is None else jnp.dtype(param_dtype).name
     with_track = query_points > 0
     params = abstract_params(config, with_track=with_track, param_dtype=param_dtype)
-    images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), jnp.float32)
+    image_dtype = jnp.dtype(image_dtype)
+    if image_dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.uint8)):
+        raise InputError(f"image_dtype must be float32 or uint8; got {image_dtype.name}")
+    images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), image_dtype)
     queries = jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32) if with_track else None
-    fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype,
+    fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, image_dtype=image_dtype.name,
                   param_dtype=param_dtype, preset=config.compression.name)
     if target is not None:
         return _target_report(config, params, images, queries, get_target(target), devices, fields)
@@ -259,12 +266,13 @@ def device_memory_bytes() -> tuple[int | None, str]:
 
 
 def check_fits(config: VGGTConfig, frames: int, height: int, width: int, *, param_dtype: Any = None,
-               batch: int = 1, mesh: Any = None) -> MemoryReport:
+               batch: int = 1, mesh: Any = None, image_dtype: Any = "float32") -> MemoryReport:
     """`memory_report` of the forward (over `mesh`'s devices when given: the figure is
     then per device), raising `InsufficientMemoryError` with what to change when it needs
     more than `device_memory_bytes()`. Returns the report (with the compiled forward)
     when it fits."""
-    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype, mesh=mesh)
+    rep = memory_report(config, frames, height, width, batch=batch, param_dtype=param_dtype, mesh=mesh,
+                        image_dtype=image_dtype)
     have, what = device_memory_bytes()
     if have is not None and rep.total_bytes > have:
         hints = []

@@ -117,3 +117,23 @@ def test_rgba_blends_on_white(tmp_path):
     assert x.shape == (1, 3, 518, 518)
     assert np.allclose(x[0, :, :, :200], 1.0)  # white
     assert np.allclose(x[0, :, :, -200:], np.array([1.0, 0.0, 0.0])[:, None, None])
+
+
+def test_network_images_are_exact_uint8_or_float32():
+    """Loaded images (each value some v / 255) become uint8 that scales back bit for bit;
+    anything else stays float32 (values off the 1/255 grid, out of [0, 1], NaN)."""
+    from rvggt_jax.io.images import network_images
+    from rvggt_jax.model.patch_embed import UNIT_OF_UINT8
+
+    paths, _ = _fixture()
+    loaded = load_images(paths, mode="pad")  # RGB, RGBA on white and L, white-padded
+    u8 = network_images(loaded)
+    assert u8.dtype == np.uint8 and u8.shape == loaded.shape
+    np.testing.assert_array_equal(UNIT_OF_UINT8[u8], loaded)
+    assert network_images(u8) is u8
+    off_grid = loaded.copy()
+    off_grid.flat[7] = np.float32(0.5)  # 127.5 / 255
+    for bad in (off_grid, loaded * 2.0, np.where(loaded > 0.5, np.nan, loaded)):
+        out = network_images(bad)
+        assert out.dtype == np.float32
+        np.testing.assert_array_equal(out, bad.astype(np.float32))

@@ -152,14 +152,28 @@ def test_keeps_only_the_layers_the_heads_read(tiny, golden):
         ((1, 2, 4, 28, 28), np.float32, r"3 \(RGB\) channels"),
         ((1, 2, 3, 30, 28), np.float32, "multiples of the patch size 14"),
         ((1, 2, 3, 28, 29), np.float32, "multiples of the patch size 14"),
-        ((1, 2, 3, 28, 28), np.uint8, "float"),
-        ((1, 2, 3, 28, 28), np.int32, "float"),
+        ((1, 2, 3, 28, 28), np.int32, "uint8"),
+        ((1, 2, 3, 28, 28), np.bool_, "float"),
     ],
 )
 def test_bad_images_are_rejected(tiny, shape, dtype, message):
     params, config = tiny
     with pytest.raises(InputError, match=message):
         rvggt_forward(params, np.zeros(shape, dtype), config)
+
+
+def test_uint8_images_give_the_outputs_of_their_float32_form(tiny, golden):
+    """uint8 images are scaled inside the program as `load_images` scales them on the
+    host (x / 255 in float32): bit for bit the same outputs, and the requested copy
+    of the input comes back in [0, 1]."""
+    params, config = tiny
+    u8 = np.round(golden["images"][:, :2] * 255.0).astype(np.uint8)
+    as_float = u8.astype(np.float32) / np.float32(255.0)
+    cfg = config.with_outputs(images=True)
+    a, b = (jax.jit(rvggt_forward, static_argnames="config")(params, x, config=cfg) for x in (u8, as_float))
+    for k in ("depth", "depth_conf", "world_points", "pose_enc", "images"):
+        np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=k)
+    assert a["images"].dtype == np.float32 and float(np.max(a["images"])) <= 1.0
 
 
 def test_bad_query_points_are_rejected(tiny):
