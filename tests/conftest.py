@@ -5,6 +5,7 @@ produced by the upstream PyTorch VGGT; see tests/data/README.md). Plain helpers 
 import os
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 from safetensors.numpy import load_file
@@ -24,6 +25,21 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # compile for a TPU at once.
 os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
 os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")
+
+
+# One XLA compilation cache for the whole session, in a temporary folder: the same small
+# programs (the tiny checkpoint's forward, above all) are compiled by many test files, by
+# both pytest-xdist workers and by the `rvggt` subprocesses; each compiles once. Made by
+# the session's first process (the workers and subprocesses inherit the variables).
+if "RVGGT_TEST_XLA_CACHE" not in os.environ:
+    import tempfile
+
+    os.environ["RVGGT_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="rvggt-test-xla-")
+    os.environ["RVGGT_TEST_XLA_CACHE_OWNER"] = str(os.getpid())
+os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["RVGGT_TEST_XLA_CACHE"]
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.2"
+jax.config.update("jax_compilation_cache_dir", os.environ["RVGGT_TEST_XLA_CACHE"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
 @pytest.fixture(scope="session")
@@ -81,3 +97,7 @@ def pytest_sessionfinish(session, exitstatus):
         proc.kill()
     if WORKER.get("owner"):
         os.environ.pop(SHARDED_DIR_ENV, None)
+    if os.environ.get("RVGGT_TEST_XLA_CACHE_OWNER") == str(os.getpid()):
+        import shutil
+
+        shutil.rmtree(os.environ["RVGGT_TEST_XLA_CACHE"], ignore_errors=True)

@@ -138,11 +138,11 @@ def test_help_names_the_targets(capsys):
 
 def test_the_printed_plan_names_its_parts_and_the_target():
     mib = 2 ** 20
-    rep = dataclasses.replace(_report(), needed_bytes=None, argument_bytes=3 * mib, output_bytes=2 * mib,
+    rep = dataclasses.replace(_report(), needed_bytes=None, image_dtype="uint8", argument_bytes=3 * mib, output_bytes=2 * mib,
                               temp_bytes=10 * mib, alias_bytes=0, memory_bytes=20 * mib, memory_what="TPU v6e",
                               device_kind="TPU v6 lite", attention="tpu_flash")
     lines = "\n".join(pc._describe(rep, tg.TARGETS["tpu-v6e"], "VGGT-1B"))
-    assert "VGGT-1B, 1 x 1000 frames of 392 x 518, preset regime, bfloat16 (weights bfloat16)" in lines
+    assert "VGGT-1B, 1 x 1000 frames of 392 x 518 (uint8), preset regime, bfloat16 (weights bfloat16)" in lines
     assert "temporaries  10.00 MiB" in lines and "total        15.00 MiB of 20.00 MiB (75%): TPU v6e" in lines
     assert "libtpu's v6e (TPU v6 lite)" in lines and "attention    tpu_flash" in lines
     refused = "\n".join(pc._describe(_report(memory_what="TPU v6e"), tg.TARGETS["tpu-v6e"], "VGGT-1B"))
