@@ -22,7 +22,9 @@ install when it is missing.
 
 from __future__ import annotations
 
-__all__ = ["BA_EXTRA_HINT", "BAError", "PycolmapMissing", "require_pycolmap"]
+import contextlib
+
+__all__ = ["BA_EXTRA_HINT", "BAError", "PycolmapMissing", "quiet_pycolmap", "require_pycolmap"]
 
 BA_EXTRA_HINT = 'pip install "rvggt-jax[ba]"'
 
@@ -44,3 +46,21 @@ def require_pycolmap():
         raise PycolmapMissing(f"bundle adjustment (--ba) needs pycolmap, which is not installed ({e}); "
                               f"install it with: {BA_EXTRA_HINT}") from None
     return pycolmap
+
+
+@contextlib.contextmanager
+def quiet_pycolmap():
+    """pycolmap (COLMAP's glog) without its INFO lines ("Creating SIFT CPU feature
+    extractor", ...) on stderr, which would interleave with the command's own messages;
+    warnings and errors still show."""
+    pycolmap = require_pycolmap()
+    log = getattr(pycolmap, "logging", None)
+    before = getattr(log, "minloglevel", None)
+    if before is None:
+        yield pycolmap
+        return
+    try:
+        log.minloglevel = max(int(before), 1)  # glog levels: 0 INFO, 1 WARNING
+        yield pycolmap
+    finally:
+        log.minloglevel = before

@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from rvggt_jax.ba import require_pycolmap
+from rvggt_jax.ba import quiet_pycolmap, require_pycolmap
 from rvggt_jax.geometry import nearest_rotation
 
 __all__ = ["Adjusted", "build_pycolmap_reconstruction", "bundle_adjust", "read_back"]
@@ -100,7 +100,8 @@ def bundle_adjust(rec, *, refine_focal: bool = False, loss: str = "cauchy", loss
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    summary = pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
+    with quiet_pycolmap():
+        summary = pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
     rec.update_point_3d_errors()
     brief = summary.brief_report() if hasattr(summary, "brief_report") else str(summary)
     return " ".join(str(brief).split()), bool(getattr(summary, "is_solution_usable", lambda: True)())

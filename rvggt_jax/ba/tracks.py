@@ -114,16 +114,23 @@ def sift_keypoints(image: np.ndarray, score: np.ndarray, valid: np.ndarray | Non
     keypoint), none on invalid pixels (`valid` [H, W], e.g. padding), within `border`
     pixels of the edge, or within `min_distance` of a better one (SIFT reports a blob
     once per orientation). Needs pycolmap."""
-    from rvggt_jax.ba import require_pycolmap
+    from rvggt_jax.ba import quiet_pycolmap
 
-    pycolmap = require_pycolmap()
     gray = np.ascontiguousarray(np.asarray(image, np.float32).mean(axis=0))
-    opts = pycolmap.FeatureExtractionOptions()
-    opts.sift.max_num_features = max(4 * count, 256)
-    opts.num_threads = 1  # tiny images; threads would only contend with XLA's
-    kp, _ = pycolmap.Sift(opts, pycolmap.Device.cpu).extract(gray)
-    xy = np.asarray(kp, np.float64)[:, :2].reshape(-1, 2)
     h, w = gray.shape
+    with quiet_pycolmap() as pycolmap:
+        opts = pycolmap.FeatureExtractionOptions()
+        opts.sift.max_num_features = max(4 * count, 256)
+        # the upsampled octave (-1) only for small images: at the model's 518 pixels it costs
+        # 4x the time for the tiniest blobs, the ones a tracker localises worst
+        opts.sift.first_octave = 0 if max(h, w) >= 400 else -1
+        opts.num_threads = 1  # one image at a time, small: threads would only contend with XLA's
+        if hasattr(pycolmap, "FeatureExtractor"):  # pycolmap >= 4: keypoints as FeatureKeypoints
+            kp, _ = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu).extract_from_float32_array(gray)
+            kp = pycolmap.keypoints_to_matrix(kp)
+        else:  # the older Sift class: keypoints as an [M, 4] array
+            kp, _ = pycolmap.Sift(opts, pycolmap.Device.cpu).extract(gray)
+    xy = np.asarray(kp, np.float64)[:, :2].reshape(-1, 2)
     inside = ((xy[:, 0] >= border) & (xy[:, 0] < w - border) & (xy[:, 1] >= border) & (xy[:, 1] < h - border))
     xy = xy[inside]
     col = np.clip(xy[:, 0].astype(int), 0, w - 1)
