@@ -23,7 +23,7 @@ import numpy as np
 from rvggt_jax.ba import BAError
 from rvggt_jax.ba.tracks import (KEYPOINT_METHODS, TrackFn, choose_query_frames, filter_tracks, query_points,
                                  track_from_query_frames)
-from rvggt_jax.ba.triangulate import mean_reprojection_error, triangulate_tracks
+from rvggt_jax.ba.triangulate import Triangulated, mean_reprojection_error, reprojection_errors, triangulate_tracks
 
 __all__ = ["BAOptions", "BAOutcome", "REPORT_NAME", "SPARSE_DIR", "refine", "write_outputs"]
 
@@ -45,7 +45,10 @@ class BAOptions:
     vis_threshold / conf_threshold: keep a track's observation in a frame when the
       tracker's visibility / confidence there is at least this (both in [0, 1]).
     max_error: observations reprojecting farther than this many (network-input) pixels
-      from the point triangulated with the predicted cameras are dropped.
+      from the point triangulated with the predicted cameras are dropped; after BA,
+      points with an observation this far (or behind a camera) are dropped.
+    min_angle: points whose viewing rays meet at less than this many degrees are dropped
+      before BA (their depth is barely constrained; BA would send them far away).
     min_points: fewer surviving points than this is an error (`BAError`), not a BA.
     refine_focal: also refine each frame's focal lengths (default: poses and points).
     loss: robust loss of the residuals (`rvggt_jax.ba.adjust.LOSSES`).
@@ -58,6 +61,7 @@ class BAOptions:
     vis_threshold: float = 0.2
     conf_threshold: float = 0.2
     max_error: float = 8.0
+    min_angle: float = 1.0
     min_points: int = 16
     refine_focal: bool = False
     loss: str = "cauchy"
@@ -78,6 +82,8 @@ class BAOptions:
                 raise ValueError(f"{name} must be in [0, 1]; got {v}")
         if not (math.isfinite(self.max_error) and self.max_error > 0):
             raise ValueError(f"--ba-max-error must be a positive number of pixels; got {self.max_error}")
+        if not (math.isfinite(self.min_angle) and 0.0 <= self.min_angle < 90.0):
+            raise ValueError(f"min_angle must be in [0, 90) degrees; got {self.min_angle}")
         if self.min_points < 1:
             raise ValueError(f"min_points must be at least 1; got {self.min_points}")
         if self.loss not in LOSSES:
@@ -119,8 +125,7 @@ class BAOutcome:
 
 
 def _point_errors(extrinsic, intrinsic, points, tracks, mask) -> np.ndarray:
-    from rvggt_jax.ba.triangulate import reprojection_errors
-
+    """Each point's mean reprojection error [M] over its observations."""
     err = np.where(mask, reprojection_errors(extrinsic, intrinsic, points, tracks), 0.0)
     return err.sum(axis=0) / np.maximum(mask.sum(axis=0), 1)
 
@@ -146,7 +151,8 @@ def refine(recon, track_fn: TrackFn, options: BAOptions = BAOptions()) -> BAOutc
     keep = filter_tracks(tracks, (h, w), recon.valid, vis_threshold=options.vis_threshold,
                          conf_threshold=options.conf_threshold)
     k_net = np.asarray(recon.network_intrinsic, np.float64)
-    tri = triangulate_tracks(recon.extrinsic, k_net, tracks.points, keep, max_error=options.max_error)
+    tri = triangulate_tracks(recon.extrinsic, k_net, tracks.points, keep, max_error=options.max_error,
+                             min_angle_deg=options.min_angle)
     counts = dict(query_points=len(tracks), observations_kept=int(keep.sum()),
                   tracks_with_2_views=int((keep.sum(axis=0) >= 2).sum()), points=len(tri),
                   observations=int(tri.mask.sum()))
@@ -154,10 +160,9 @@ def refine(recon, track_fn: TrackFn, options: BAOptions = BAOptions()) -> BAOutc
         raise BAError(
             f"too few tracks for bundle adjustment: {len(tri)} point(s) triangulated (at least {options.min_points} "
             f"needed) from {len(tracks)} query points, {counts['tracks_with_2_views']} of them seen in 2+ frames "
-            f"after the visibility/confidence filters; try more --ba-query-points, lower --ba-vis-threshold / "
+            f"after the visibility/confidence filters (points need inlier views whose rays meet at "
+            f"{options.min_angle:g} degrees or more); try more --ba-query-points, lower --ba-vis-threshold / "
             f"--ba-conf-threshold, or a larger --ba-max-error")
-    err_before = mean_reprojection_error(recon.extrinsic, k_net, tri.points, tri.tracks, tri.mask)
-    pe_before = _point_errors(recon.extrinsic, k_net, tri.points, tri.tracks, tri.mask)
     # a point's colour: its query pixel's
     qf = tracks.query_frame[tri.index]
     qxy = tracks.points[qf, tri.index]
@@ -168,6 +173,22 @@ def refine(recon, track_fn: TrackFn, options: BAOptions = BAOptions()) -> BAOutc
     adjusted, _ = run_bundle_adjustment(names, recon.extrinsic, k_net, [(w, h)] * s, tri.points, tri.tracks,
                                         tri.mask, colors, refine_focal=options.refine_focal, loss=options.loss,
                                         max_iterations=options.max_iterations)
+    # points BA could not fit (an observation behind its camera or beyond max_error) are
+    # dropped, and both errors are means over the points kept: the same observations
+    err = reprojection_errors(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks)
+    fit = np.flatnonzero(~np.any(tri.mask & ~(err <= options.max_error), axis=0))
+    counts["points_dropped_after_ba"] = len(tri) - len(fit)
+    if len(fit) < options.min_points:
+        raise BAError(f"bundle adjustment did not converge to a usable model: {len(fit)} of {len(tri)} points fit "
+                      f"within --ba-max-error {options.max_error:g} px afterwards (at least {options.min_points} "
+                      f"needed); the tracks are too poor for these cameras")
+    tri = Triangulated(points=tri.points[fit], tracks=tri.tracks[:, fit], mask=tri.mask[:, fit],
+                       index=tri.index[fit])
+    colors = colors[fit]
+    adjusted = dataclasses.replace(adjusted, points=adjusted.points[fit])
+    counts.update(points=len(fit), observations=int(tri.mask.sum()))
+    err_before = mean_reprojection_error(recon.extrinsic, k_net, tri.points, tri.tracks, tri.mask)
+    pe_before = _point_errors(recon.extrinsic, k_net, tri.points, tri.tracks, tri.mask)
     err_after = mean_reprojection_error(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks,
                                         tri.mask)
     pe_after = _point_errors(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks, tri.mask)
@@ -179,6 +200,17 @@ def refine(recon, track_fn: TrackFn, options: BAOptions = BAOptions()) -> BAOutc
         tracks=np.einsum("sij,snj->sni", to_original, hom)[..., :2], network_tracks=tri.tracks, mask=tri.mask,
         errors_before=pe_before, errors_after=pe_after, error_before=err_before, error_after=err_after,
         counts=counts, query_frames=tuple(qframes), summary=adjusted.summary, usable=adjusted.usable)
+
+
+def _finite(obj):
+    """`obj` with non-finite floats as None: standard JSON has no NaN or Infinity."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def write_outputs(out_dir: str | os.PathLike, outcome: BAOutcome, names: Sequence[str],
@@ -221,5 +253,5 @@ def write_outputs(out_dir: str | os.PathLike, outcome: BAOutcome, names: Sequenc
         pycolmap_mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
         pycolmap_pixels="original images", solver=outcome.summary, solution_usable=outcome.usable,
         options=dataclasses.asdict(options), **(meta or {}))
-    (out / REPORT_NAME).write_text(json.dumps(report, indent=1) + "\n")
+    (out / REPORT_NAME).write_text(json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
     return report

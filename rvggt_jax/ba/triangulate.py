@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["Triangulated", "mean_reprojection_error", "project", "reprojection_errors", "triangulate",
-           "triangulate_tracks"]
+           "triangulate_tracks", "triangulation_angles"]
 
 
 def project(extrinsic: np.ndarray, intrinsic: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,6 +71,24 @@ def triangulate(extrinsic: np.ndarray, intrinsic: np.ndarray, tracks: np.ndarray
     return pts
 
 
+def triangulation_angles(extrinsic: np.ndarray, points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Largest angle (degrees) [N] between two rays from the cameras that observe a point
+    (`mask` [S, N]) to it (points [N, 3]); 0 with fewer than two observations. A small
+    angle means the point's depth is barely constrained: a little noise moves it far."""
+    e = np.asarray(extrinsic, np.float64)
+    centers = -np.einsum("sji,sj->si", e[:, :, :3], e[:, :, 3])  # -R^T t
+    d = np.asarray(points, np.float64)[None] - centers[:, None]  # [S, N, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    m = np.asarray(mask, bool)
+    lowest = np.ones(m.shape[1])
+    for i in range(len(e)):  # one camera against all: [S, N] at a time, not [S, S, N]
+        cos = np.einsum("nk,snk->sn", d[i], d)
+        cos = np.where(m[i][None] & m & np.isfinite(cos), cos, 1.0)
+        lowest = np.minimum(lowest, cos.min(axis=0))
+    return np.degrees(np.arccos(np.clip(lowest, -1.0, 1.0)))
+
+
 @dataclass(frozen=True, eq=False)
 class Triangulated:
     """The tracks that triangulated well.
@@ -91,11 +109,12 @@ class Triangulated:
 
 
 def triangulate_tracks(extrinsic, intrinsic, tracks, mask, *, max_error: float = 8.0,
-                       min_views: int = 2) -> Triangulated:
+                       min_views: int = 2, min_angle_deg: float = 0.0) -> Triangulated:
     """Triangulate tracks [S, N, 2] over their observations `mask` [S, N], then drop the
     observations that reproject more than `max_error` pixels away or lie behind their
     camera (track-head mistakes, occlusions the visibility missed), re-triangulate from
-    the rest, and keep the points still seen by `min_views` (>= 2) inlier observations."""
+    the rest, and keep the points still seen by `min_views` (>= 2) inlier observations
+    whose rays meet at `min_angle_deg` degrees at least (`triangulation_angles`)."""
     if min_views < 2:
         raise ValueError(f"a point needs at least 2 views; got min_views={min_views}")
     tracks = np.asarray(tracks, np.float64)
@@ -108,5 +127,8 @@ def triangulate_tracks(extrinsic, intrinsic, tracks, mask, *, max_error: float =
         pts = triangulate(extrinsic, intrinsic, tracks, m)
     err = reprojection_errors(extrinsic, intrinsic, pts, tracks)
     m &= np.isfinite(err) & (err <= max_error)
-    keep = np.flatnonzero((m.sum(axis=0) >= min_views) & np.isfinite(pts).all(axis=1))
+    ok = (m.sum(axis=0) >= min_views) & np.isfinite(pts).all(axis=1)
+    if min_angle_deg > 0:
+        ok &= triangulation_angles(extrinsic, np.nan_to_num(pts), m) >= min_angle_deg
+    keep = np.flatnonzero(ok)
     return Triangulated(points=pts[keep], tracks=tracks[:, keep], mask=m[:, keep], index=keep)
