@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("pycolmap", reason='bundle adjustment needs pycolmap: pip install "rvggt-jax[ba]"')
-
+# pycolmap is in the [test] extra: without it these tests fail at import (never skipped)
+import pycolmap  # noqa: E402,F401
 from rvggt_jax.ba.adjust import run_bundle_adjustment  # noqa: E402
 from rvggt_jax.ba.triangulate import (mean_reprojection_error, project, reprojection_errors,  # noqa: E402
-                                      triangulate, triangulate_tracks)
+                                      triangulate, triangulate_tracks, triangulation_angles)
 from tests.ba.synthetic_ba import center_error, perturb, relative_rotation_error_deg, scene  # noqa: E402
 
 # What BA must achieve from the perturbed start (measured: 13x, 52x and 21x with
@@ -43,6 +43,21 @@ def test_triangulate_exact_with_true_cameras(problem):
     assert two.sum() > 300
     np.testing.assert_allclose(got[two], pts[two], atol=1e-6)
     assert np.isnan(got[~two]).all()
+
+
+def test_triangulation_angles():
+    # two cameras 2 apart on x, both looking down +z; a point 2 in front of their midpoint
+    # is seen under 2 * atan(1 / 2) = 53.13 degrees; a point seen once has angle 0
+    ext = np.stack([np.concatenate([np.eye(3), -np.array([[cx], [0.0], [0.0]])], axis=1) for cx in (-1.0, 1.0)])
+    pts = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 2.0]])
+    mask = np.array([[True, True], [True, False]])
+    np.testing.assert_allclose(triangulation_angles(ext, pts, mask), [np.degrees(2 * np.arctan(0.5)), 0.0], atol=1e-5)
+    # the filter of triangulate_tracks: the far point (0.2 degrees) goes, the near one stays
+    far = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 600.0]])
+    k = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])[None].repeat(2, 0)
+    uv, _ = project(ext, k, far)
+    tri = triangulate_tracks(ext, k, uv, np.ones((2, 2), bool), min_angle_deg=1.0)
+    assert tri.index.tolist() == [0]
 
 
 def test_triangulate_tracks_drops_outliers(problem):

@@ -11,8 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-pytest.importorskip("pycolmap", reason='bundle adjustment needs pycolmap: pip install "rvggt-jax[ba]"')
-
+# pycolmap is in the [test] extra: without it these tests fail at import (never skipped)
 import pycolmap  # noqa: E402
 
 from rvggt_jax.app.pipeline import build_reconstruction  # noqa: E402
