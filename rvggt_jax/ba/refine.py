@@ -130,14 +130,40 @@ def _point_errors(extrinsic, intrinsic, points, tracks, mask) -> np.ndarray:
     return err.sum(axis=0) / np.maximum(mask.sum(axis=0), 1)
 
 
+def _adjust(extrinsic, k_net, size, tri: Triangulated, colors, options: BAOptions, counts: dict):
+    """pycolmap's BA of the triangulated tracks, then the points it could not fit (an
+    observation behind its camera or beyond `max_error`) dropped and, if any were, BA
+    again without them (they pulled on the cameras in the first round). Returns the
+    adjusted arrays and the kept tracks and colours; `counts` gets the number dropped."""
+    from rvggt_jax.ba.adjust import run_bundle_adjustment
+
+    s = len(extrinsic)
+    names = [f"frame_{i:03d}" for i in range(s)]  # pycolmap's own copy: names only label it
+    ba = dict(refine_focal=options.refine_focal, loss=options.loss, max_iterations=options.max_iterations)
+    adjusted, _ = run_bundle_adjustment(names, extrinsic, k_net, [size] * s, tri.points, tri.tracks, tri.mask,
+                                        colors, **ba)
+    err = reprojection_errors(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks)
+    fit = np.flatnonzero(~np.any(tri.mask & ~(err <= options.max_error), axis=0))
+    counts["points_dropped_after_ba"] = len(tri) - len(fit)
+    if len(fit) < options.min_points:
+        raise BAError(f"bundle adjustment did not converge to a usable model: {len(fit)} of {len(tri)} points fit "
+                      f"within --ba-max-error {options.max_error:g} px afterwards (at least {options.min_points} "
+                      f"needed); the tracks are too poor for these cameras")
+    if len(fit) < len(tri):
+        tri = Triangulated(points=tri.points[fit], tracks=tri.tracks[:, fit], mask=tri.mask[:, fit],
+                           index=tri.index[fit])
+        colors = colors[fit]
+        adjusted, _ = run_bundle_adjustment(names, adjusted.extrinsic, adjusted.intrinsic, [size] * s,
+                                            adjusted.points[fit], tri.tracks, tri.mask, colors, **ba)
+    return adjusted, tri, colors
+
+
 def refine(recon, track_fn: TrackFn, options: BAOptions = BAOptions()) -> BAOutcome:
     """Bundle-adjust `recon` (a `rvggt_jax.app.pipeline.Reconstruction`): query points in
     `options.query_frames` frames, tracked by `track_fn` (see `rvggt_jax.ba.tracks`),
     filtered, triangulated with the predicted cameras, then pycolmap's BA. `BAError`
     (a message saying which option helps) for fewer than 2 frames or fewer than
     `options.min_points` surviving points."""
-    from rvggt_jax.ba.adjust import run_bundle_adjustment
-
     options.check()
     images = np.asarray(recon.images, np.float32)
     s, _, h, w = images.shape
@@ -169,24 +195,8 @@ def refine(recon, track_fn: TrackFn, options: BAOptions = BAOptions()) -> BAOutc
     col = np.clip(qxy[:, 0].astype(int), 0, w - 1)
     row = np.clip(qxy[:, 1].astype(int), 0, h - 1)
     colors = (np.clip(images[qf, :, row, col], 0, 1) * 255 + 0.5).astype(np.uint8)
-    names = [f"frame_{i:03d}" for i in range(s)]  # pycolmap's own copy: names only label it
-    adjusted, _ = run_bundle_adjustment(names, recon.extrinsic, k_net, [(w, h)] * s, tri.points, tri.tracks,
-                                        tri.mask, colors, refine_focal=options.refine_focal, loss=options.loss,
-                                        max_iterations=options.max_iterations)
-    # points BA could not fit (an observation behind its camera or beyond max_error) are
-    # dropped, and both errors are means over the points kept: the same observations
-    err = reprojection_errors(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks)
-    fit = np.flatnonzero(~np.any(tri.mask & ~(err <= options.max_error), axis=0))
-    counts["points_dropped_after_ba"] = len(tri) - len(fit)
-    if len(fit) < options.min_points:
-        raise BAError(f"bundle adjustment did not converge to a usable model: {len(fit)} of {len(tri)} points fit "
-                      f"within --ba-max-error {options.max_error:g} px afterwards (at least {options.min_points} "
-                      f"needed); the tracks are too poor for these cameras")
-    tri = Triangulated(points=tri.points[fit], tracks=tri.tracks[:, fit], mask=tri.mask[:, fit],
-                       index=tri.index[fit])
-    colors = colors[fit]
-    adjusted = dataclasses.replace(adjusted, points=adjusted.points[fit])
-    counts.update(points=len(fit), observations=int(tri.mask.sum()))
+    adjusted, tri, colors = _adjust(recon.extrinsic, k_net, (w, h), tri, colors, options, counts)
+    counts.update(points=len(tri), observations=int(tri.mask.sum()))
     err_before = mean_reprojection_error(recon.extrinsic, k_net, tri.points, tri.tracks, tri.mask)
     pe_before = _point_errors(recon.extrinsic, k_net, tri.points, tri.tracks, tri.mask)
     err_after = mean_reprojection_error(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks,
