@@ -70,7 +70,7 @@ def run_bundle_adjustment(out_dir: Path, recon, params, config, options) -> dict
     outputs are already written, and the message says so)."""
     from rvggt_jax.app.model_runner import enable_compilation_cache
     from rvggt_jax.ba import BAError, PycolmapMissing
-    from rvggt_jax.ba.refine import REPORT_NAME, SPARSE_DIR, refine, write_outputs
+    from rvggt_jax.ba.refine import CAMERAS_NAME, POINTS_NAME, REPORT_NAME, SPARSE_DIR, refine, write_outputs
 
     enable_compilation_cache()
     try:
@@ -78,7 +78,7 @@ def run_bundle_adjustment(out_dir: Path, recon, params, config, options) -> dict
     except (BAError, PycolmapMissing) as e:
         raise CLIError(f"bundle adjustment: {e} (the feed-forward outputs are in {out_dir})") from None
     report = write_outputs(out_dir, outcome, recon.names, recon.sizes, options.ba)
-    report["files"] = [f"{SPARSE_DIR}/", "cameras_ba.json", REPORT_NAME]
+    report["files"] = [f"{SPARSE_DIR}/", CAMERAS_NAME, POINTS_NAME, REPORT_NAME]
     if not outcome.usable:
         warn(f"bundle adjustment: pycolmap reports an unusable solution ({outcome.summary})")
     if outcome.error_after > outcome.error_before:

@@ -20,8 +20,8 @@ in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
 (COLMAP text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/,
 thumbnails/, trajectory.png (and frames/ for a video); see
 `rvggt_jax.io.export`. With --ba (bundle adjustment, the `[ba]` extra: pycolmap) also
-sparse_ba/ (COLMAP model with tracks: text, and binary in sparse_ba/bin), cameras_ba.json
-and ba_report.json (reprojection errors before / after); see `rvggt_jax.ba`.
+sparse_ba/ (COLMAP model with tracks: text, and binary in sparse_ba/bin), cameras_ba.json,
+points_ba.ply and ba_report.json (reprojection errors before / after); see `rvggt_jax.ba`.
 
 Failures exit non-zero with `rvggt: error: ...` on stderr, details indented under it
 (set RVGGT_DEBUG=1 for the traceback). Compiled programs are cached across runs in
@@ -178,7 +178,7 @@ def _add_ba_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("bundle adjustment (needs pycolmap: pip install \"rvggt-jax[ba]\")")
     g.add_argument("--ba", action="store_true",
                    help="refine the predicted cameras by bundle adjustment of the track head's tracks (pycolmap); "
-                        "writes sparse_ba/ (COLMAP model with tracks), cameras_ba.json and ba_report.json")
+                        "writes sparse_ba/ (COLMAP model with tracks), cameras_ba.json, points_ba.ply and ba_report.json")
     g.add_argument("--ba-query-frames", type=int, default=None, metavar="N",
                    help=f"frames to take query points in, evenly spaced, frame 0 first; each costs a forward pass "
                         f"with the track head (default {d.query_frames})")

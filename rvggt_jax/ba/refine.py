@@ -25,11 +25,12 @@ from rvggt_jax.ba.tracks import (KEYPOINT_METHODS, TrackFn, choose_query_frames,
                                  track_from_query_frames)
 from rvggt_jax.ba.triangulate import Triangulated, mean_reprojection_error, reprojection_errors, triangulate_tracks
 
-__all__ = ["BAOptions", "BAOutcome", "REPORT_NAME", "SPARSE_DIR", "refine", "write_outputs"]
+__all__ = ["BAOptions", "BAOutcome", "CAMERAS_NAME", "POINTS_NAME", "REPORT_NAME", "SPARSE_DIR", "refine", "write_outputs"]
 
 REPORT_NAME = "ba_report.json"
 SPARSE_DIR = "sparse_ba"  # COLMAP text model with tracks; the binary one in sparse_ba/bin
 CAMERAS_NAME = "cameras_ba.json"
+POINTS_NAME = "points_ba.ply"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -232,6 +233,9 @@ def write_outputs(out_dir: str | os.PathLike, outcome: BAOutcome, names: Sequenc
                                                  (`rvggt_jax.io.colmap.write_colmap_text_with_tracks`)
         sparse_ba/bin/*.bin                      the same model written by pycolmap
         cameras_ba.json                          the refined cameras (`rvggt_jax.io.cameras`)
+        points_ba.ply                            the refined points, with `error` (mean
+                                                 reprojection error, pixels) and
+                                                 `track_length` per point
         ba_report.json                           reprojection errors before / after, counts,
                                                  options
 
@@ -240,6 +244,7 @@ def write_outputs(out_dir: str | os.PathLike, outcome: BAOutcome, names: Sequenc
     from rvggt_jax.ba.adjust import build_pycolmap_reconstruction
     from rvggt_jax.io.cameras import write_cameras_json
     from rvggt_jax.io.colmap import write_colmap_text_with_tracks
+    from rvggt_jax.io.ply import write_ply
 
     out = Path(out_dir)
     colmap_names = [n.replace(" ", "_") for n in names]
@@ -254,6 +259,9 @@ def write_outputs(out_dir: str | os.PathLike, outcome: BAOutcome, names: Sequenc
     rec.write(str(sparse / "bin"))
     write_cameras_json(out / CAMERAS_NAME, list(names), outcome.extrinsic, outcome.intrinsic, sizes,
                        meta=dict(bundle_adjusted=True))
+    write_ply(out / POINTS_NAME, outcome.points, outcome.colors,
+              extra=dict(error=outcome.errors_after.astype(np.float32),
+                         track_length=outcome.mask.sum(axis=0).astype(np.int32)))
     report = dict(
         mean_reprojection_error_before_px=outcome.error_before,
         mean_reprojection_error_after_px=outcome.error_after,

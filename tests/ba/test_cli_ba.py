@@ -18,6 +18,7 @@ import pycolmap  # noqa: E402
 
 from rvggt_jax.app.cli import main  # noqa: E402
 from rvggt_jax.app.commands import DEMO_IMAGES, DEMO_WEIGHTS  # noqa: E402  (rvggt_jax/examples_data)
+from rvggt_jax.io.ply import read_ply_properties  # noqa: E402
 from tests.helpers import REPO  # noqa: E402
 
 
@@ -66,6 +67,7 @@ def test_reconstruct_with_ba(ba_run):
         assert all(p.track.length() >= 2 for p in rec.points3D.values())
     cams = json.loads((out / "cameras_ba.json").read_text())["frames"]
     assert [c["image"] for c in cams] == names
+    assert len(read_ply_properties(out / "points_ba.ply")["x"]) == report["points"]
     manifest = json.loads((out / ".rvggt-manifest.json").read_text())
     listed = json.dumps(manifest)
     assert "ba_report.json" in listed and "sparse_ba" in listed  # --overwrite will remove them

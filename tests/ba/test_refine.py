@@ -21,6 +21,7 @@ from rvggt_jax.ba.tracks import (Tracks, choose_query_frames, filter_tracks, gri
                                  query_points, track_from_query_frames)
 from rvggt_jax.eval.datasets.colmap_binary import read_model  # noqa: E402
 from rvggt_jax.io.colmap import colmap_rotation  # noqa: E402
+from rvggt_jax.io.ply import read_ply_properties  # noqa: E402
 from tests.ba.synthetic_ba import ExactTracker, center_error, perturb, relative_rotation_error_deg, scene  # noqa: E402
 
 OPTIONS = BAOptions(query_frames=3, query_points=300, keypoints="grid", max_error=30.0)
@@ -117,6 +118,9 @@ def test_written_model_read_back(sc, refined):
         np.testing.assert_allclose(r["intrinsic"], outcome.intrinsic[i], atol=1e-9)
     doc = json.loads((out / REPORT_NAME).read_text())
     assert doc["points"] == m and doc["observations"] == int(outcome.mask.sum())
+    props = read_ply_properties(out / "points_ba.ply")
+    np.testing.assert_allclose(np.stack([props["x"], props["y"], props["z"]], 1), outcome.points, rtol=1e-6)
+    assert props["track_length"].tolist() == outcome.mask.sum(0).tolist()
     cams = json.loads((out / "cameras_ba.json").read_text())["frames"]
     np.testing.assert_allclose(np.array(cams[1]["extrinsic"]), outcome.extrinsic[1], atol=1e-12)
 
