@@ -57,6 +57,7 @@ def test_reconstruct_with_ba(ba_run):
     before, after = report["mean_reprojection_error_before_px"], report["mean_reprojection_error_after_px"]
     assert np.isfinite(before) and np.isfinite(after) and report["points"] >= 16
     said = [ln for ln in r.stdout.splitlines() if ln.startswith("bundle adjustment:")]
+    print(said)
     assert len(said) == 1 and f"{before:.4g} px -> {after:.4g} px" in said[0], r.stdout
     names = sorted(p.name for p in DEMO_IMAGES.iterdir())
     for folder in (out / "sparse_ba", out / "sparse_ba" / "bin"):
