@@ -203,6 +203,7 @@ IMPORT_RULES = {
     "weights": {"config", "model.params"},
     "planning": {"config", "ops", "compression", "model", "parallel", "weights"},
     "io": {"geometry"},
+    "ba": {"geometry", "io"},
     "eval": {"geometry", "io", "model", "weights"},
     "train": {"config", "geometry", "eval", "model", "synthetic", "weights"},
     "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},

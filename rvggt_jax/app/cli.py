@@ -19,7 +19,9 @@ in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
 `reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
 (COLMAP text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/,
 thumbnails/, trajectory.png (and frames/ for a video); see
-`rvggt_jax.io.export`.
+`rvggt_jax.io.export`. With --ba (bundle adjustment, the `[ba]` extra: pycolmap) also
+sparse_ba/ (COLMAP model with tracks: text, and binary in sparse_ba/bin), cameras_ba.json,
+points_ba.ply and ba_report.json (reprojection errors before / after); see `rvggt_jax.ba`.
 
 Failures exit non-zero with `rvggt: error: ...` on stderr, details indented under it
 (set RVGGT_DEBUG=1 for the traceback). Compiled programs are cached across runs in
@@ -164,6 +166,60 @@ def _add_reconstruct_parser(sub, presets: str) -> None:
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="split the frames over N local devices, one forward pass (default: all of them when "
                         "there are several)")
+    _add_ba_options(p)
+
+
+def _add_ba_options(p: argparse.ArgumentParser) -> None:
+    """--ba and its --ba-* options (defaults: `rvggt_jax.ba.refine.BAOptions`'; given without
+    --ba they are an error, see `_ba_options`)."""
+    from rvggt_jax.ba.refine import BAOptions
+
+    d = BAOptions()
+    g = p.add_argument_group("bundle adjustment (needs pycolmap: pip install \"rvggt-jax[ba]\")")
+    g.add_argument("--ba", action="store_true",
+                   help="refine the predicted cameras by bundle adjustment of the track head's tracks (pycolmap); "
+                        "writes sparse_ba/ (COLMAP model with tracks), cameras_ba.json, points_ba.ply and ba_report.json")
+    g.add_argument("--ba-query-frames", type=int, default=None, metavar="N",
+                   help=f"frames to take query points in, evenly spaced, frame 0 first; each costs a forward pass "
+                        f"with the track head (default {d.query_frames})")
+    g.add_argument("--ba-query-points", type=int, default=None, metavar="N",
+                   help=f"query points in all, split over the query frames (default {d.query_points})")
+    g.add_argument("--ba-keypoints", default=None, choices=("sift", "grid"),
+                   help=f"query points: SIFT keypoints ranked by depth confidence, topped up with grid points, or "
+                        f"the most confident pixel of each grid cell (default {d.keypoints})")
+    g.add_argument("--ba-vis-threshold", type=float, default=None, metavar="X",
+                   help=f"keep a track's observation when the tracker's visibility is >= X in [0, 1] "
+                        f"(default {d.vis_threshold})")
+    g.add_argument("--ba-conf-threshold", type=float, default=None, metavar="X",
+                   help=f"keep a track's observation when the tracker's confidence is >= X in [0, 1] "
+                        f"(default {d.conf_threshold})")
+    g.add_argument("--ba-max-error", type=float, default=None, metavar="PX",
+                   help=f"drop observations reprojecting more than PX network pixels from their triangulated "
+                        f"point (default {d.max_error:g})")
+    g.add_argument("--ba-refine-focal", action="store_true",
+                   help="also refine each frame's focal lengths (default: poses and points only)")
+
+
+_BA_FIELDS = {"ba_query_frames": "query_frames", "ba_query_points": "query_points", "ba_keypoints": "keypoints",
+              "ba_vis_threshold": "vis_threshold", "ba_conf_threshold": "conf_threshold",
+              "ba_max_error": "max_error"}
+
+
+def _ba_options(args: argparse.Namespace):
+    """The `BAOptions` of --ba and its --ba-* options (None without --ba; a --ba-* option
+    without --ba is a usage error rather than silently ignored)."""
+    from rvggt_jax.ba.refine import BAOptions
+
+    given = {field: getattr(args, arg) for arg, field in _BA_FIELDS.items() if getattr(args, arg) is not None}
+    if args.ba_refine_focal:
+        given["refine_focal"] = True
+    if not args.ba:
+        if given:
+            names = [f"--{a.replace('_', '-')}" for a in _BA_FIELDS if getattr(args, a) is not None]
+            names += ["--ba-refine-focal"] if args.ba_refine_focal else []
+            raise CLIError(f"{', '.join(names)} only apply with --ba")
+        return None
+    return BAOptions(**given)
 
 
 def _common_options(p: argparse.ArgumentParser, presets: str) -> None:
@@ -185,7 +241,7 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
         **common, mode=args.mode, max_frames=args.max_frames, every=args.every, fps=args.fps,
         skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, devices=args.devices,
         conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
-        all_colmap_points=args.all_colmap_points)
+        all_colmap_points=args.all_colmap_points, ba=_ba_options(args))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

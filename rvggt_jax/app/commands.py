@@ -125,6 +125,10 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
 
     source, out_dir = Path(source), Path(out_dir)
     options.check()
+    if options.ba is not None:
+        from rvggt_jax.app.ba_command import check_ba_available
+
+        check_ba_available()
     video = _check_source(source, options)
     _check_weights(weights)
     chosen = None if video else _image_inputs(source, options)
@@ -186,15 +190,23 @@ _STAGES = ("loading weights", "checking memory", "running the model", "decoding 
 
 def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, options: ReconstructOptions) -> dict:
     """`reconstruct_folder` once the inputs are chosen and the output folder is ready:
-    load the images, then the model, check the memory, run, decode, write."""
+    load the images, then the model, check the memory, run, decode, write (then, with
+    --ba, bundle-adjust: `rvggt_jax.app.ba_command`)."""
     from rvggt_jax.io.images import network_images
 
+    if options.ba is not None and len(chosen) < 2:
+        raise CLIError(f"--ba (bundle adjustment) needs at least 2 images; got {len(chosen)}")
     images, infos, chosen = _load_inputs(chosen, options)
     s, _, h, w = images.shape
     t0 = time.perf_counter()
-    with _stage_bar(_STAGES, options.quiet) as stage:
+    stages = _STAGES + (("bundle adjustment",) if options.ba is not None else ())
+    with _stage_bar(stages, options.quiet) as stage:
         stage(0)
         params, config = _model_for(local_weights, weights, options)
+        if options.ba is not None:
+            from rvggt_jax.app.ba_command import split_track_head
+
+            params, track_params = split_track_head(params, config, weights)
         stage(1)
         # the images go in as uint8 (exact, `network_images`): plan and compile for that
         report, mesh = _check_memory(config, (s, h, w), options, network_images(images).dtype)
@@ -204,9 +216,18 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         recon = _decode(out, images, chosen, infos, options)
         stage(4)
         summary = _export(out_dir, recon, source, weights, config, options)
-        stage(len(_STAGES))
+        if options.ba is not None:
+            from rvggt_jax.app.ba_command import run_bundle_adjustment
+
+            stage(5)
+            summary["ba"] = run_bundle_adjustment(out_dir, recon, track_params, config, options)
+        stage(len(stages))
     summary["seconds"] = time.perf_counter() - t0
     _tell_summary(summary, out_dir, options)
+    if "ba" in summary:
+        from rvggt_jax.app.ba_command import tell_bundle_adjustment
+
+        tell_bundle_adjustment(summary["ba"], out_dir, options.quiet)
     return summary
 
 
@@ -263,7 +284,7 @@ def _stage_bar(stages: Sequence[str], quiet: bool):
 
 def _model_for(local_weights, weights, options: ReconstructOptions):
     """`(params, config)` of the checkpoint with the options' preset and dtype applied."""
-    params, config = load_model(local_weights, options.quiet, name=weights)
+    params, config = load_model(local_weights, options.quiet, name=weights, with_track=options.ba is not None)
     if options.preset is not None:
         try:
             config = config.with_compression(options.preset)

@@ -23,9 +23,10 @@ def resolve_weights(weights: str | Path, quiet: bool) -> Path:
         raise CLIError(str(e)) from None
 
 
-def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None):
+def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None, with_track: bool = False):
     """`(params, config)` of a checkpoint (local path or hub repo id), without the
-    track head (unused here); `name` is how messages call it (default: `weights`).
+    track head unless `with_track` (`--ba` tracks with it); `name` is how messages call it
+    (default: `weights`).
     Warnings of the loader become `rvggt: warning:` lines."""
     name = weights if name is None else name
     local = resolve_weights(weights, quiet)
@@ -36,7 +37,7 @@ def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None 
 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            loaded = load_checkpoint(str(local), skip_track=True, progress=not quiet)
+            loaded = load_checkpoint(str(local), skip_track=not with_track, progress=not quiet)
         for w in caught:
             if issubclass(w.category, UserWarning):
                 warn(str(w.message))

@@ -64,6 +64,10 @@ class ReconstructOptions:
       overwrite: reuse a non-empty output folder, deleting the files the previous rvggt run
         there wrote (its manifest) and nothing else.
       quiet: no progress bars or messages (errors and warnings only).
+    Refinement:
+      ba: bundle-adjust the predicted cameras with the track head's tracks and pycolmap
+        (`rvggt_jax.ba.refine.BAOptions`: query frames and points, track filters, ...);
+        None: no bundle adjustment. Needs the `[ba]` extra (pycolmap).
     """
 
     mode: str = "crop"
@@ -81,6 +85,7 @@ class ReconstructOptions:
     all_colmap_points: bool = False
     overwrite: bool = False
     quiet: bool = False
+    ba: "BAOptions | None" = None  # noqa: F821 - rvggt_jax.ba.refine.BAOptions, imported when used
 
     def check(self) -> None:
         """Raise `CLIError` (one line, naming the command-line option) for a value out of
@@ -111,3 +116,8 @@ class ReconstructOptions:
             raise CLIError(f"--every must be at least 1; got {self.every}")
         if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
             raise CLIError(f"--fps must be a positive number; got {self.fps}")
+        if self.ba is not None:
+            try:
+                self.ba.check()
+            except ValueError as e:
+                raise CLIError(str(e)) from None

@@ -20,7 +20,7 @@ from rvggt_jax.geometry import mat_to_quat, nearest_rotation, quat_to_mat
 from rvggt_jax.io.cameras import check_cameras
 from rvggt_jax.io.ply import colors_u8
 
-__all__ = ["colmap_qvec", "colmap_rotation", "write_colmap_text"]
+__all__ = ["colmap_qvec", "colmap_rotation", "write_colmap_text", "write_colmap_text_with_tracks"]
 
 PathLike = str | os.PathLike
 
@@ -91,3 +91,52 @@ def write_colmap_text(folder: PathLike, names: Sequence[str], extrinsics: np.nda
             f"{j + 1} {p[0]:.7g} {p[1]:.7g} {p[2]:.7g} {c[0]} {c[1]} {c[2]} 0\n"
             for j, (p, c) in enumerate(zip(pts, cols))
         )
+
+
+def write_colmap_text_with_tracks(folder: PathLike, names: Sequence[str], extrinsics: np.ndarray,
+                                  intrinsics: np.ndarray, sizes: Sequence[tuple[int, int]], points: np.ndarray,
+                                  colors: np.ndarray | None, tracks: np.ndarray, mask: np.ndarray,
+                                  errors: np.ndarray | None = None) -> None:
+    """COLMAP text model with tracks (as bundle adjustment produces it): as
+    `write_colmap_text`, plus the observations.
+
+    points [N, 3], colors [N, 3]; tracks [S, N, 2] pixel (x, y) of point j in image i
+    (in the pixels of `intrinsics`, continuous: the image spans [0, W] x [0, H], as
+    COLMAP's), mask [S, N] bool the observations that exist; errors [N] each point's
+    mean reprojection error in pixels (default 0). Image i's POINTS2D are its
+    observations in point order, so point j's TRACK lists (i + 1, its rank among image
+    i's observations)."""
+    # cameras.txt is the plain writer's (one format, one place); images.txt and
+    # points3D.txt are written again below, with the observations
+    write_colmap_text(folder, names, extrinsics, intrinsics, sizes)
+    e, _ = check_cameras(names, extrinsics, intrinsics, sizes)
+    folder = Path(folder)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n, s = len(pts), len(names)
+    tr = np.asarray(tracks, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    if tr.shape != (s, n, 2) or m.shape != (s, n):
+        raise ValueError(f"tracks must be [S, N, 2] and mask [S, N] = {(s, n)}; got {tr.shape}, {m.shape}")
+    err = np.zeros(n) if errors is None else np.asarray(errors, dtype=np.float64).reshape(n)
+    cols = colors_u8(colors, n)
+    idx = np.cumsum(m, axis=1) - 1  # [S, N] rank of each observation among its image's 2D points
+
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+             f"# Number of images: {s}, mean observations per image: {m.sum() / max(s, 1):.6g}"]
+    for i in range(s):
+        q = colmap_qvec(nearest_rotation(e[i, :, :3]))
+        lines.append(" ".join([str(i + 1), *map(_fmt, q), *map(_fmt, e[i, :, 3]), str(i + 1), names[i]]))
+        lines.append(" ".join(f"{_fmt(tr[i, j, 0])} {_fmt(tr[i, j, 1])} {j + 1}" for j in np.flatnonzero(m[i])))
+    (folder / "images.txt").write_text("\n".join(lines) + "\n")
+
+    length = m.sum(axis=0)
+    with open(folder / "points3D.txt", "w") as f:
+        f.write("# 3D point list with one line of data per point:\n"
+                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
+                f"# Number of points: {n}, mean track length: {length.mean() if n else 0:.6g}\n")
+        for j in range(n):
+            p, c = pts[j], cols[j]
+            track = " ".join(f"{i + 1} {idx[i, j]}" for i in np.flatnonzero(m[:, j]))
+            f.write(f"{j + 1} {_fmt(p[0])} {_fmt(p[1])} {_fmt(p[2])} {c[0]} {c[1]} {c[2]} {_fmt(err[j])} {track}\n")
