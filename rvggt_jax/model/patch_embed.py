@@ -17,6 +17,7 @@ import numpy as np
 
 from rvggt_jax.model import layers
 from rvggt_jax.ops.attention import attention
+from rvggt_jax.ops import chunks
 from rvggt_jax.ops.chunks import update_tokens
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model.layers import Params
@@ -112,12 +113,58 @@ def cls_saliency(q: jax.Array, k: jax.Array, num_prefix: int) -> jax.Array:
     return jax.nn.softmax(logits, axis=-1).mean(axis=1)[:, num_prefix:]
 
 
-def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
-    """DINOv2 forward on normalised images, its blocks in `config.compute_dtype` (the
-    residual stream in float32, as under torch's autocast).
+UNIT_OF_UINT8 = np.arange(256, dtype=np.float32) / np.float32(255.0)  # [256]: v -> v / 255
 
-    images [N, 3, H, W] -> (every token after the final norm [N, 1 + R + h*w, C] float32
-    ([CLS], R registers, patches), the prefix length 1 + R, saliency Psi [N, h*w] float32).
+
+def unit_images(images: jax.Array) -> jax.Array:
+    """Images as `check_images` returns them -> float32 in [0, 1]: uint8 / 255 in
+    float32, the same division upstream's ToTensor (and `load_images`) does, so a uint8
+    input gives bit for bit the outputs of its float32 form."""
+    if images.dtype == jnp.uint8:
+        # A table of the 256 quotients, divided on the host: XLA rewrites a division by
+        # a constant (or a broadcast scalar) into a multiplication by its reciprocal,
+        # which rounds 1 in ~3 values differently from the division
+        return jnp.asarray(UNIT_OF_UINT8)[images]
+    return images
+
+
+def embed_images(p: Params, images: jax.Array, config: VGGTConfig) -> jax.Array:
+    """The ViT's input tokens: images [N, 3, H, W] (float in [0, 1] or uint8) ->
+    [N, 1 + R + h*w, C] float32 ([CLS] + position, R registers, patches + positions).
+
+    A chunk of whole images at a time, written into the token buffer: the normalised
+    images, their patch matrix and the unpadded patch tokens exist for one chunk only.
+    (Whole, XLA:TPU lays the patch matrix out with its 3 channels minor, padded to a
+    tile: 11 GiB at 1000 frames of 392 x 518.)"""
+    dino = config.dino
+    dtype = config.compute_dtype
+    ps = config.patch_size
+    n, c, hh, ww = images.shape
+    h, w = hh // ps, ww // ps
+    width = config.embed_dim
+    pos = interpolate_pos_embed(p["pos_embed"].astype(jnp.float32), h, w, dino.interpolate_offset)
+    regs = p["register_tokens"].astype(jnp.float32)
+
+    def embed(chunk):  # [n_c, 3, H, W] -> [n_c, 1 + R + h*w, C]
+        m = chunk.shape[0]
+        x = (unit_images(chunk) - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
+        x = patchify(p["patch_embed"]["proj"], x.astype(dtype), ps).astype(jnp.float32)
+        x = jnp.concatenate([jnp.broadcast_to(p["cls_token"].astype(jnp.float32), (m, 1, width)), x], axis=1) + pos
+        return jnp.concatenate([x[:, :1], jnp.broadcast_to(regs, (m,) + regs.shape[1:]), x[:, 1:]], axis=1)
+
+    tokens = 1 + regs.shape[1] + h * w
+    # per image: the float32 input, its patch matrix and the tokens (twice, the concats)
+    per_image = c * hh * ww * 4 * 2 + tokens * width * 4 * 3
+    return chunks.map_tokens(embed, (images,), axis=0, bytes_per_row=per_image, multiple=1)
+
+
+def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
+    """DINOv2 forward on images [N, 3, H, W] (float in [0, 1] or uint8; normalised with
+    ImageNet's mean and std inside, `embed_images`), its blocks in
+    `config.compute_dtype` (the residual stream in float32, as under torch's autocast).
+
+    -> (every token after the final norm [N, 1 + R + h*w, C] float32 ([CLS], R
+    registers, patches), the prefix length 1 + R, saliency Psi [N, h*w] float32).
     The final norm is applied in place: the aggregator overwrites the prefix with its own
     camera and register tokens in the same buffer."""
     dino = config.dino
@@ -127,13 +174,8 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
     h, w = hh // ps, ww // ps
     eps = dino.layer_norm_eps
 
-    x = patchify(p["patch_embed"]["proj"], images.astype(dtype), ps).astype(jnp.float32)
-    cls = jnp.broadcast_to(p["cls_token"].astype(jnp.float32), (n, 1, x.shape[-1]))
-    x = jnp.concatenate([cls, x], axis=1)
-    x = x + interpolate_pos_embed(p["pos_embed"].astype(jnp.float32), h, w, dino.interpolate_offset)
-    regs = jnp.broadcast_to(p["register_tokens"].astype(jnp.float32), (n,) + p["register_tokens"].shape[1:])
-    x = jnp.concatenate([x[:, :1], regs, x[:, 1:]], axis=1)
-    num_prefix = 1 + regs.shape[1]
+    x = embed_images(p, images, config)
+    num_prefix = 1 + p["register_tokens"].shape[1]
 
     depth = dino.depth
     if depth > 1:
@@ -161,21 +203,6 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
     return x, num_prefix, saliency
 
 
-UNIT_OF_UINT8 = np.arange(256, dtype=np.float32) / np.float32(255.0)  # [256]: v -> v / 255
-
-
-def unit_images(images: jax.Array) -> jax.Array:
-    """Images as `check_images` returns them -> float32 in [0, 1]: uint8 / 255 in
-    float32, the same division upstream's ToTensor (and `load_images`) does, so a uint8
-    input gives bit for bit the outputs of its float32 form."""
-    if images.dtype == jnp.uint8:
-        # A table of the 256 quotients, divided on the host: XLA rewrites a division by
-        # a constant (or a broadcast scalar) into a multiplication by its reciprocal,
-        # which rounds 1 in ~3 values differently from the division
-        return jnp.asarray(UNIT_OF_UINT8)[images]
-    return images
-
-
 def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] -> (patch tokens [B*S, h*w, C], Psi [B, S, h*w])."""
     x, num_prefix, saliency = patch_embed_tokens(p, images, config)
@@ -187,6 +214,5 @@ def patch_embed_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tupl
     (DINO tokens [B*S, 1 + R + h*w, C] with the patch tokens after the prefix of 1 + R,
     the prefix length, Psi [B, S, h*w])."""
     b, s, c, hh, ww = images.shape
-    x = (unit_images(images) - RESNET_MEAN[:, None, None]) / RESNET_STD[:, None, None]
-    tokens, num_prefix, saliency = dino_tokens(p, x.reshape(b * s, c, hh, ww), config)
+    tokens, num_prefix, saliency = dino_tokens(p, images.reshape(b * s, c, hh, ww), config)
     return tokens, num_prefix, saliency.reshape(b, s, -1)
