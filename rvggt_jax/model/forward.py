@@ -97,6 +97,11 @@ def check_query_points(query_points: Any, batch: int) -> jax.Array:
     return qp
 
 
+def heads_in_float32(tree: Any) -> Any:
+    """`tree` with every floating-point leaf as float32 (integer leaves unchanged)."""
+    return jax.tree.map(lambda x: x.astype(jnp.float32) if _is_float(x) else x, tree)
+
+
 def check_params(params: Params, config: VGGTConfig) -> None:
     """Catch a config that does not describe these params before shapes fail deep inside."""
     try:
@@ -158,6 +163,10 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
     with_track = query_points is not None
     keep = set(config.needed_layers(with_track)) | set(config.return_layers)
     agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards)
+    # The heads compute in float32 whatever dtype their weights are stored in (a tree cast
+    # whole to bf16, the usual JAX idiom, would otherwise change the camera head's scan
+    # carry dtype); as `cast_params` lays them out, this is a no-op.
+    params = {name: (sub if name == "aggregator" else heads_in_float32(sub)) for name, sub in params.items()}
 
     out: dict[str, Any] = {}
     if config.enable_camera:
