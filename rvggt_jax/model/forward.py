@@ -24,6 +24,7 @@ from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.model.heads.camera import camera_head
 from rvggt_jax.model.heads.dpt import dense_heads
 from rvggt_jax.model.heads.track import track_head
+from rvggt_jax.model.input_range import InputRangeWarning, warn_if_out_of_range  # noqa: F401 (re-exported)
 from rvggt_jax.model.layers import Params
 from rvggt_jax.weights.converter import expected_param_paths, flatten_params
 
@@ -38,8 +39,9 @@ def _is_float(x: Any) -> bool:
 
 def check_images(images: Any, config: VGGTConfig) -> jax.Array:
     """Validate and batch images: [S, 3, H, W] or [B, S, 3, H, W] float in [0, 1] ->
-    [B, S, 3, H, W]. Only static facts (rank, shape, dtype) are checked, so this also
-    works on tracers under jit."""
+    [B, S, 3, H, W]. Only static facts (rank, shape, dtype) are errors, so this also
+    works on tracers under jit; values outside [0, 1] or NaN are an `InputRangeWarning`
+    (`warn_if_out_of_range`: at once for concrete arrays, from inside the program under jit)."""
     shape = tuple(np.shape(images))
     if len(shape) not in (4, 5):
         raise InputError(f"images must be [S,3,H,W] or [B,S,3,H,W]; got rank {len(shape)} shape {shape}")
@@ -48,6 +50,9 @@ def check_images(images: Any, config: VGGTConfig) -> jax.Array:
             f"images must be a float array in [0, 1]; got dtype {jnp.result_type(images)} "
             "(divide uint8 images by 255)"
         )
+    # a float image is legal whatever its values: only a warning (concrete arrays now, under
+    # jit from inside the program)
+    warn_if_out_of_range(images)
     if len(shape) == 4:
         images = images[None]
         shape = (1,) + shape
