@@ -211,7 +211,7 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         stage(3)
         recon = _decode(out, images, chosen, infos, options, masks)
         stage(4)
-        summary = _export(out_dir, recon, source, weights, config, options)
+        summary = _export(out_dir, recon, source, weights, config, options, chosen)
         stage(len(_STAGES))
     summary["seconds"] = time.perf_counter() - t0
     _tell_summary(summary, out_dir, options)
@@ -339,13 +339,14 @@ def _decode(out: dict, images, chosen: list[Path], infos, options: ReconstructOp
     return recon
 
 
-def _export(out_dir: Path, recon, source: Path, weights, config, options: ReconstructOptions) -> dict:
+def _export(out_dir: Path, recon, source: Path, weights, config, options: ReconstructOptions,
+            image_paths: Sequence[Path] | None = None) -> dict:
     from rvggt_jax.io.export import export_reconstruction
 
     meta = dict(source=str(source), weights=str(weights), preset=config.compression.name, mode=options.mode,
                 conf_threshold=str(options.conf_threshold), points_from=options.points_from,
                 exif_orientation=options.exif_orientation)
-    return export_reconstruction(out_dir, recon, meta=meta,
+    return export_reconstruction(out_dir, recon, meta=meta, image_paths=image_paths,
                                  max_colmap_points=None if options.all_colmap_points else 100_000)
 
 
