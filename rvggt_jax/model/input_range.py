@@ -82,18 +82,15 @@ def warn_if_out_of_range(images: Any) -> None:
     [0, 1] or NaN. Concrete arrays are checked now; a tracer (under `jax.jit`, `grad`,
     `shard_map`) gets the check inside its program, reported by `jax.debug.callback` when
     the program runs. Integer images are not checked (their scaling is the caller's)."""
-    if not jnp.issubdtype(jnp.result_type(images), jnp.floating):
-        return
+    if not jnp.issubdtype(jnp.result_type(images), jnp.floating) or 0 in np.shape(images):
+        return  # (an empty array is the shape check's to refuse)
     if isinstance(images, jax.core.Tracer):
         _in_program(images)
         return
     if isinstance(images, jax.Array):
         lo, hi, nans = jax.device_get(_stats(jnp, images.astype(jnp.float32)))
     else:
-        x = np.asarray(images, np.float32)
-        if x.size == 0:
-            return
-        lo, hi, nans = _stats(np, x)
+        lo, hi, nans = _stats(np, np.asarray(images, np.float32))
     msg = range_message(float(lo), float(hi), int(nans))
     if msg is not None:
         warnings.warn(msg, InputRangeWarning, stacklevel=5)  # the caller of rvggt_forward

@@ -54,6 +54,12 @@ def test_concrete_images_in_range_stay_silent(tiny, images):
         check_inputs(params, images, config)
 
 
+def test_empty_images_are_refused_by_the_shape_check_not_the_range_check(tiny):
+    params, config = tiny
+    with pytest.raises(rvggt_jax.InputError, match="empty axis"):
+        check_inputs(params, np.zeros((1, 0, 3, 14, 14), np.float32), config)
+
+
 def test_under_jit_the_program_warns_and_compiles_once(tiny):
     params, config = tiny
     fwd = jax.jit(rvggt_forward)
