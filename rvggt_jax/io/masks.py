@@ -35,10 +35,9 @@ def find_masks(image_paths: Sequence[str | os.PathLike], folder: str | os.PathLi
     `MaskError` naming the first image without a mask (or with two), or two images that
     share a stem (their masks could not be told apart)."""
     folder = Path(folder)
-    try:
-        files, _ = find_images(folder)
-    except (FileNotFoundError, NotADirectoryError) as e:
-        raise MaskError(f"mask folder: {e}") from None
+    if not folder.is_dir():
+        raise MaskError(f"mask folder {'is not a folder' if folder.exists() else 'not found'}: {folder}")
+    files, _ = find_images(folder)
     by_stem: dict[str, list[Path]] = {}
     for f in files:
         by_stem.setdefault(f.stem, []).append(f)

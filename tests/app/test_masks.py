@@ -78,6 +78,25 @@ def test_cli_refuses_a_missing_mask_before_loading_weights(tmp_path):
                                     ReconstructOptions(masks=masks, quiet=True))
 
 
+def test_masks_option_on_the_command_line(tmp_path):
+    """`rvggt reconstruct --masks DIR` reaches the options: a missing folder is one line
+    naming it, before the weights load."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.helpers import REPO
+
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+           "RVGGT_CACHE_DIR": "off", "JAX_PLATFORMS": "cpu"}
+    r = subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", "reconstruct", str(DEMO_IMAGES), "--weights",
+                        str(commands.DEMO_WEIGHTS), "--out", str(tmp_path / "out"), "--masks",
+                        str(tmp_path / "nowhere")], capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+    assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("rvggt: error:")]
+    assert len(errors) == 1 and "--masks: mask folder" in errors[0] and "nowhere" in errors[0], r.stderr
+
+
 @pytest.fixture(scope="module")
 def masked_run(tmp_path_factory):
     """The demo (tiny random weights) on 2 demo images with masks, every point kept;
