@@ -153,6 +153,10 @@ def _add_reconstruct_parser(sub, presets: str) -> None:
                    help="video: keep F frames per second (default for a video: 1)")
     p.add_argument("--skip-bad", action="store_true",
                    help="leave out images that cannot be read, with a warning naming each (default: stop)")
+    p.add_argument("--masks", default=None, metavar="DIR",
+                   help="per-image masks in DIR, named like the images (same file stem, any image format; "
+                        "white = keep): masked pixels are set to 0 before the forward and their points and "
+                        "depth are left out of every output")
     p.add_argument("--ignore-exif", action="store_true",
                    help="read images as stored, ignoring their EXIF orientation (upstream's behaviour)")
     p.add_argument("--points", default=_DEFAULTS.points_from, choices=("depth", "pointmap"),
@@ -239,7 +243,7 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
         return ReconstructOptions(**common)
     return ReconstructOptions(
         **common, mode=args.mode, max_frames=args.max_frames, every=args.every, fps=args.fps,
-        skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, devices=args.devices,
+        skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, masks=args.masks, devices=args.devices,
         conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
         all_colmap_points=args.all_colmap_points, ba=_ba_options(args))
 

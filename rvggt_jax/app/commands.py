@@ -132,6 +132,11 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
     video = _check_source(source, options)
     _check_weights(weights)
     chosen = None if video else _image_inputs(source, options)
+    if options.masks is not None:
+        if video:
+            raise CLIError("--masks takes masks named like the input images; the input is a video (extract its "
+                           "frames to a folder first)")
+        _mask_paths(chosen, options)  # a missing mask is said now, before the weights load
     created = not out_dir.exists()
     _prepare_output(out_dir, options)
     manifest = Manifest(out_dir)
@@ -198,6 +203,12 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         raise CLIError(f"--ba (bundle adjustment) needs at least 2 images; got {len(chosen)}")
     images, infos, chosen = _load_inputs(chosen, options)
     s, _, h, w = images.shape
+    masks = None
+    if options.masks is not None:
+        from rvggt_jax.app.pipeline import apply_masks
+
+        masks = _load_masks(chosen, infos, (h, w), options)
+        images = apply_masks(images, masks)
     t0 = time.perf_counter()
     stages = _STAGES + (("bundle adjustment",) if options.ba is not None else ())
     with _stage_bar(stages, options.quiet) as stage:
@@ -213,9 +224,9 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         stage(2)
         out = run_model(params, images, config, weights, compiled=report.compiled, mesh=mesh)
         stage(3)
-        recon = _decode(out, images, chosen, infos, options)
+        recon = _decode(out, images, chosen, infos, options, masks)
         stage(4)
-        summary = _export(out_dir, recon, source, weights, config, options)
+        summary = _export(out_dir, recon, source, weights, config, options, chosen)
         if options.ba is not None:
             from rvggt_jax.app.ba_command import run_bundle_adjustment
 
@@ -314,26 +325,52 @@ def _check_memory(config, shape: tuple[int, int, int], options: ReconstructOptio
     return report, mesh
 
 
-def _decode(out: dict, images, chosen: list[Path], infos, options: ReconstructOptions):
-    """The reconstruction (cameras, depth, points) of the model's outputs; its repairs
-    are warnings."""
+def _mask_paths(chosen: list[Path], options: ReconstructOptions) -> list[Path]:
+    """The mask file of each chosen image (`--masks`); `CLIError` naming a missing one."""
+    from rvggt_jax.io.masks import MaskError, find_masks
+
+    try:
+        return find_masks(chosen, options.masks)
+    except MaskError as e:
+        raise CLIError(f"--masks: {e}") from None
+
+
+def _load_masks(chosen: list[Path], infos, image_hw: tuple[int, int], options: ReconstructOptions):
+    """Masks [S, H, W] bool of the loaded images, preprocessed as they were; `CLIError`
+    naming a mask of the wrong size."""
+    from rvggt_jax.io.masks import MaskError, load_masks
+
+    try:
+        masks = load_masks(_mask_paths(chosen, options), infos, image_hw, options.mode,
+                           exif_orientation=options.exif_orientation)
+    except MaskError as e:
+        raise CLIError(f"--masks: {e}") from None
+    kept = float(masks.mean()) if masks.size else 0.0
+    say(options.quiet, f"masks: keeping {100 * kept:.1f}% of the network input's pixels")
+    return masks
+
+
+def _decode(out: dict, images, chosen: list[Path], infos, options: ReconstructOptions, masks=None):
+    """The reconstruction (cameras, depth, points) of the model's outputs, masked pixels
+    left out (`masks` [S, H, W], True = keep); its repairs are warnings."""
     from rvggt_jax.app.pipeline import reconstruction_from_outputs
 
     recon = reconstruction_from_outputs(out, images, names=[Path(p).name for p in chosen], infos=infos,
                                         points_from=options.points_from, conf_threshold=options.conf_threshold,
-                                        max_points=options.max_points)
+                                        max_points=options.max_points, masks=masks)
     for msg in recon.repairs:
         warn(msg)
     return recon
 
 
-def _export(out_dir: Path, recon, source: Path, weights, config, options: ReconstructOptions) -> dict:
+def _export(out_dir: Path, recon, source: Path, weights, config, options: ReconstructOptions,
+            image_paths: Sequence[Path] | None = None) -> dict:
     from rvggt_jax.io.export import export_reconstruction
 
     meta = dict(source=str(source), weights=str(weights), preset=config.compression.name, mode=options.mode,
                 conf_threshold=str(options.conf_threshold), points_from=options.points_from,
                 exif_orientation=options.exif_orientation)
-    return export_reconstruction(out_dir, recon, meta=meta,
+    return export_reconstruction(out_dir, recon, meta=meta, image_paths=image_paths,
                                  max_colmap_points=None if options.all_colmap_points else 100_000)
 
 

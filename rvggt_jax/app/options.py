@@ -47,6 +47,9 @@ class ReconstructOptions:
         stopping at the first.
       exif_orientation: apply the EXIF orientation of photos (False: read them as stored,
         upstream's behaviour).
+      masks: a folder with one mask per image, by file stem (white = keep): masked pixels
+        are 0 in the network input and have no point or depth in any output
+        (`rvggt_jax.io.masks`); None: no masks. Images only, not a video.
     Model:
       preset: compression preset of the global attention (`known_presets()`); None: the
         checkpoint's.
@@ -76,6 +79,7 @@ class ReconstructOptions:
     fps: float | None = None
     skip_bad: bool = False
     exif_orientation: bool = True
+    masks: str | Path | None = None
     preset: str | None = None
     dtype: str = "float32"
     devices: int | None = None

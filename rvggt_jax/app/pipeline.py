@@ -15,7 +15,7 @@ import numpy as np
 
 from rvggt_jax.geometry import nearest_rotation
 
-__all__ = ["Reconstruction", "build_reconstruction", "parse_threshold", "reconstruct", "reconstruction_from_outputs", "run_model",
+__all__ = ["Reconstruction", "apply_masks", "build_reconstruction", "parse_threshold", "reconstruct", "reconstruction_from_outputs", "run_model",
            "sanitize_cameras", "select_points"]
 
 POINT_SOURCES = ("depth", "pointmap")
@@ -28,7 +28,8 @@ class Reconstruction:
 
     names        S image names
     images       [S, 3, H, W] float32 in [0, 1], the network input
-    valid        [S, H, W] bool, image content (False on padding)
+    valid        [S, H, W] bool, image content the outputs keep (False on padding and on
+                 masked pixels)
     extrinsic    [S, 3, 4] float64 world-to-camera, OpenCV axes (x right, y down, z forward)
     intrinsic    [S, 3, 3] float64 pinhole in the ORIGINAL image's pixels
     sizes        S (width, height) of the original images
@@ -91,18 +92,32 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
 
 def reconstruct(images, params, config, *, names: Sequence[str] | None = None, infos: Sequence[Any] | None = None,
                 points_from: str = "depth", conf_threshold: str | float = "50%",
-                max_points: int | None = 2_000_000, compiled=None) -> Reconstruction:
+                max_points: int | None = 2_000_000, compiled=None, masks=None) -> Reconstruction:
     """Run the model on images [S, 3, H, W] (as `rvggt_jax.load_images` returns them) and
     build the `Reconstruction` (the keyword arguments: see `build_reconstruction`);
-    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`)."""
+    `compiled`: the forward already compiled for these shapes (`MemoryReport.compiled`);
+    masks [S, H, W] bool (True = keep): masked pixels are 0 in the network input
+    (`apply_masks`) and have no point."""
     images = np.asarray(images, dtype=np.float32)
     _check_images(images)
+    if masks is not None:
+        images = apply_masks(images, masks)
     _check_options(points_from, conf_threshold, max_points)
     if points_from == "pointmap" and not config.enable_point:
         raise ValueError("points_from='pointmap' needs the point head; the model has none")
     outputs = run_model(params, images, config, compiled)
     return reconstruction_from_outputs(outputs, images, names=names, infos=infos, points_from=points_from,
-                                       conf_threshold=conf_threshold, max_points=max_points)
+                                       conf_threshold=conf_threshold, max_points=max_points, masks=masks)
+
+
+def apply_masks(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """images [S, 3, H, W] with the pixels where masks [S, H, W] (True = keep) is False set
+    to 0: what the model sees of a masked pixel (upstream's README: masked pixels 0)."""
+    images = np.asarray(images, dtype=np.float32)
+    masks = np.asarray(masks, dtype=bool)
+    if masks.shape != (images.shape[0],) + images.shape[2:]:
+        raise ValueError(f"masks must be [S, H, W] = {(images.shape[0],) + images.shape[2:]}; got {masks.shape}")
+    return images * masks[:, None]
 
 
 def reconstruction_from_outputs(outputs: Mapping[str, np.ndarray], images, **kw) -> Reconstruction:
@@ -126,7 +141,8 @@ def reconstruction_from_outputs(outputs: Mapping[str, np.ndarray], images, **kw)
 def build_reconstruction(images, extrinsic, intrinsic, depth, depth_conf, *, world_points=None,
                          world_points_conf=None, names: Sequence[str] | None = None,
                          infos: Sequence[Any] | None = None, points_from: str = "depth",
-                         conf_threshold: str | float = "50%", max_points: int | None = 2_000_000) -> Reconstruction:
+                         conf_threshold: str | float = "50%", max_points: int | None = 2_000_000,
+                         masks=None) -> Reconstruction:
     """A `Reconstruction` from predicted cameras and maps at network resolution.
 
     images [S, 3, H, W] in [0, 1]; extrinsic [S, 3, 4] world-to-camera; intrinsic
@@ -136,7 +152,9 @@ def build_reconstruction(images, extrinsic, intrinsic, depth, depth_conf, *, wor
     upstream's default). names [S] (default `frame_000`, ...); infos [S] `ImageInfo` of
     `load_images_with_info` (None: network pixels are the original pixels). Unusable
     cameras are repaired (`sanitize_cameras`, messages in `repairs`); conf_threshold /
-    max_points choose the points (`select_points`)."""
+    max_points choose the points (`select_points`). masks [S, H, W] bool (True = keep):
+    masked pixels are left out of `valid`, so they have no point (PLY, GLB, COLMAP) and
+    no depth in the depth PNGs."""
     images = np.asarray(images, dtype=np.float32)
     _check_images(images)
     _check_options(points_from, conf_threshold, max_points)
@@ -153,6 +171,11 @@ def build_reconstruction(images, extrinsic, intrinsic, depth, depth_conf, *, wor
         raise ValueError(f"depth and depth_conf must be [S, H, W] = {(s, h, w)}; got {depth.shape}, "
                          f"{depth_conf.shape}")
     valid = np.stack([np.ones((h, w), bool) if info is None else info.valid_mask(h, w) for info in infos])
+    if masks is not None:
+        masks = np.asarray(masks, dtype=bool)
+        if masks.shape != (s, h, w):
+            raise ValueError(f"masks must be [S, H, W] = {(s, h, w)}; got {masks.shape}")
+        valid = valid & masks
     colors = (np.clip(images.transpose(0, 2, 3, 1), 0, 1) * 255 + 0.5).astype(np.uint8)
 
     if points_from == "depth":

@@ -1,7 +1,8 @@
-"""COLMAP text model: `cameras.txt` (one PINHOLE camera per image), `images.txt`
-(world-to-camera quaternion `QW QX QY QZ` + translation, empty 2D-point line),
-`points3D.txt` (points with colour, error 0 and an empty track). Readable by COLMAP
-(`colmap model_converter`), pycolmap and nerfstudio's COLMAP loader.
+"""COLMAP model, text and binary: `cameras.txt` / `.bin` (one PINHOLE camera per image),
+`images.txt` / `.bin` (world-to-camera quaternion `QW QX QY QZ` + translation, no 2D
+points), `points3D.txt` / `.bin` (points with colour, error 0 and an empty track), in the
+layout of COLMAP's documentation ("Output format"). Readable by COLMAP, pycolmap,
+nerfstudio's COLMAP loader and gsplat's (which read the binary files).
 
 COLMAP's quaternions are scalar-first (qw, qx, qy, qz); `rvggt_jax.geometry` (the one
 quaternion implementation) is scalar-last (x, y, z, w), as upstream VGGT: `colmap_qvec`
@@ -11,6 +12,7 @@ and `colmap_rotation` convert.
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
 from typing import Sequence
 
@@ -20,7 +22,8 @@ from rvggt_jax.geometry import mat_to_quat, nearest_rotation, quat_to_mat
 from rvggt_jax.io.cameras import check_cameras
 from rvggt_jax.io.ply import colors_u8
 
-__all__ = ["colmap_qvec", "colmap_rotation", "write_colmap_text", "write_colmap_text_with_tracks"]
+__all__ = ["colmap_qvec", "colmap_rotation", "write_colmap_binary", "write_colmap_text",
+           "write_colmap_text_with_tracks"]
 
 PathLike = str | os.PathLike
 
@@ -140,3 +143,46 @@ def write_colmap_text_with_tracks(folder: PathLike, names: Sequence[str], extrin
             p, c = pts[j], cols[j]
             track = " ".join(f"{i + 1} {idx[i, j]}" for i in np.flatnonzero(m[:, j]))
             f.write(f"{j + 1} {_fmt(p[0])} {_fmt(p[1])} {_fmt(p[2])} {c[0]} {c[1]} {c[2]} {_fmt(err[j])} {track}\n")
+
+
+# COLMAP's camera model id of PINHOLE (fx, fy, cx, cy), src/colmap/sensor/models.h
+_PINHOLE_ID = 1
+
+
+def write_colmap_binary(folder: PathLike, names: Sequence[str], extrinsics: np.ndarray, intrinsics: np.ndarray,
+                        sizes: Sequence[tuple[int, int]], points: np.ndarray | None = None,
+                        colors: np.ndarray | None = None) -> None:
+    """COLMAP binary model in `folder` (created): cameras.bin, images.bin, points3D.bin,
+    the same model as `write_colmap_text` (its arguments; ids 1..S and 1..N).
+    Little-endian, as COLMAP writes it: cameras (id int32, model int32, width, height
+    uint64, params float64), images (id uint32, qvec, tvec float64, camera id uint32,
+    name NUL-terminated, 0 2D points uint64), points (id uint64, xyz float64, rgb uint8,
+    error float64, track length uint64 = 0)."""
+    e, k = check_cameras(names, extrinsics, intrinsics, sizes)
+    for name in names:
+        if any(ch.isspace() for ch in name):
+            raise ValueError(f"COLMAP image names cannot contain spaces: {name!r}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    s = len(names)
+    with open(folder / "cameras.bin", "wb") as f:
+        f.write(struct.pack("<Q", s))
+        for i in range(s):
+            w, h = sizes[i]
+            f.write(struct.pack("<iiQQ4d", i + 1, _PINHOLE_ID, int(w), int(h), k[i, 0, 0], k[i, 1, 1], k[i, 0, 2],
+                                k[i, 1, 2]))
+    with open(folder / "images.bin", "wb") as f:
+        f.write(struct.pack("<Q", s))
+        for i in range(s):
+            q = colmap_qvec(nearest_rotation(e[i, :, :3]))
+            f.write(struct.pack("<I7dI", i + 1, *q, *e[i, :, 3], i + 1))
+            f.write(names[i].encode("utf-8") + b"\0" + struct.pack("<Q", 0))
+    pts = np.zeros((0, 3)) if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cols = colors_u8(colors, len(pts))
+    record = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("error", "<f8"), ("track", "<u8")])
+    table = np.zeros(len(pts), record)  # one packed record per point (no padding: 51 bytes)
+    table["id"] = np.arange(1, len(pts) + 1)
+    table["xyz"], table["rgb"] = pts, cols
+    with open(folder / "points3D.bin", "wb") as f:
+        f.write(struct.pack("<Q", len(pts)))
+        f.write(table.tobytes())

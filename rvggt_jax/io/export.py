@@ -7,8 +7,14 @@ each written by the module of its format:
     thumbnails/<stem>.jpg     `io.plots`: the network input, small (for `rvggt view`)
     cameras.json              `io.cameras`: per-image camera in the ORIGINAL image's
                               pixels, plus the network-input camera under "network"
-    sparse/{cameras,images,points3D}.txt   `io.colmap`: COLMAP text model (original
-                              pixels); points3D.txt holds a random subset of points.ply
+    sparse/{cameras,images,points3D}.txt and .bin   `io.colmap`: the COLMAP model, text
+                              and binary (original pixels); points3D holds a random
+                              subset of points.ply
+    transforms.json           `io.transforms`: nerfstudio's format (cameras, the images
+                              under images/, points.ply as splatfacto's initial points)
+    images/<name>             the input images under their COLMAP names (hard links, or
+                              copies across file systems): what nerfstudio and gsplat
+                              read next to the model (only when the image paths are given)
     depth/<stem>.png          `io.depth`: 16-bit depth of the network input (scale in
                               depth/depth_scale.json)
     depth_preview/<stem>.png  `io.depth`: coloured depth (near = bright)
@@ -25,12 +31,13 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rvggt_jax.io.cameras import write_cameras_json
-from rvggt_jax.io.colmap import write_colmap_text
+from rvggt_jax.io.colmap import write_colmap_binary, write_colmap_text
 from rvggt_jax.io.depth import write_depth_pngs
 from rvggt_jax.io.plots import write_thumbnails, write_trajectory_png
 from rvggt_jax.io.ply import write_ply
+from rvggt_jax.io.transforms import write_transforms_json
 
-__all__ = ["export_reconstruction", "unique_stems"]
+__all__ = ["IMAGES_DIR", "export_reconstruction", "link_images", "unique_stems"]
 
 PathLike = str | os.PathLike
 
@@ -39,12 +46,15 @@ CAMERAS_CONVENTION = ("extrinsic: 3x4 world-to-camera, OpenCV axes (x right, y d
 
 
 def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | None = 100_000,
-                          meta: Mapping[str, Any] | None = None, write_scene: bool = True) -> dict[str, Any]:
+                          meta: Mapping[str, Any] | None = None, write_scene: bool = True,
+                          image_paths: Sequence[PathLike] | None = None) -> dict[str, Any]:
     """Write every file of `recon` (a `rvggt_jax.app.pipeline.Reconstruction`) to `out_dir`
-    (layout in the module docstring). points3D.txt holds a random subset of at most
+    (layout in the module docstring). points3D holds a random subset of at most
     `max_colmap_points` points (None: all); `meta` goes into cameras.json; scene.glb only
     with `write_scene`. COLMAP names cannot hold spaces: they are written with '_'
-    instead (listed in the summary's `colmap_renamed`).
+    instead (listed in the summary's `colmap_renamed`). `image_paths` [S], the image
+    files of `recon.names`: linked into images/ (transforms.json refers to them there;
+    without them it names the images by their COLMAP names, relative to `out_dir`).
     Returns a summary dict (paths, point counts, threshold used)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -64,6 +74,16 @@ def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | 
         cpts, crgb = cloud, cloud_rgb
     colmap_names = [n.replace(" ", "_") for n in names]
     write_colmap_text(out / "sparse", colmap_names, recon.extrinsic, recon.intrinsic, recon.sizes, cpts, crgb)
+    write_colmap_binary(out / "sparse", colmap_names, recon.extrinsic, recon.intrinsic, recon.sizes, cpts, crgb)
+    if image_paths is not None:
+        if len(image_paths) != s:
+            raise ValueError(f"{s} images need {s} image paths; got {len(image_paths)}")
+        link_images(out / IMAGES_DIR, image_paths, colmap_names)
+        file_paths = [f"{IMAGES_DIR}/{n}" for n in colmap_names]
+    else:
+        file_paths = colmap_names
+    write_transforms_json(out / "transforms.json", file_paths, recon.extrinsic, recon.intrinsic, recon.sizes,
+                          ply_file_path="points.ply")
 
     if write_scene:
         from rvggt_jax.io.glb import write_glb
@@ -79,6 +99,30 @@ def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | 
                 max_colmap_points=max_colmap_points,
                 conf_threshold=recon.conf_threshold, depth_scale=scale, stems=stems,
                 colmap_renamed=[(a, b) for a, b in zip(names, colmap_names) if a != b])
+
+
+IMAGES_DIR = "images"  # where COLMAP-format readers (gsplat, nerfstudio) look for the images
+
+
+def link_images(folder: Path, paths: Sequence[PathLike], names: Sequence[str]) -> None:
+    """`folder/names[i]` = the file `paths[i]`: a hard link (no copy, and deleting it
+    leaves the original), or a copy where the two are on different file systems. An
+    entry already there (an earlier run) is replaced."""
+    import shutil
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for src, name in zip(paths, names):
+        dst = folder / name
+        src = Path(src)
+        if dst.exists() and os.path.samefile(src, dst):
+            continue
+        tmp = folder / f".{name}.tmp"
+        tmp.unlink(missing_ok=True)
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
 
 
 def unique_stems(names: Sequence[str]) -> list[str]:

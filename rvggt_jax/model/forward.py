@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import chex
@@ -24,7 +25,9 @@ from rvggt_jax.model.heads.camera import camera_head
 from rvggt_jax.model.patch_embed import unit_images
 from rvggt_jax.model.heads.dpt import dense_heads
 from rvggt_jax.model.heads.track import track_head
+from rvggt_jax.model.input_range import InputRangeWarning, warn_if_out_of_range  # noqa: F401 (re-exported)
 from rvggt_jax.model.layers import Params
+from rvggt_jax.weights.converter import expected_param_paths, flatten_params
 
 
 class InputError(ValueError):
@@ -38,14 +41,19 @@ def _is_float(x: Any) -> bool:
 def check_images(images: Any, config: VGGTConfig) -> jax.Array:
     """Validate and batch images: [S, 3, H, W] or [B, S, 3, H, W], float in [0, 1] or
     uint8 in [0, 255] -> [B, S, 3, H, W] (float32, or uint8 kept as it is: the program
-    scales it, `unit_images`). Only static facts (rank, shape, dtype) are checked, so
-    this also works on tracers under jit."""
+    scales it, `unit_images`). Only static facts (rank, shape, dtype) are errors, so
+    this also works on tracers under jit; float values outside [0, 1] or NaN are an
+    `InputRangeWarning` (`warn_if_out_of_range`: at once for concrete arrays, from inside
+    the program under jit)."""
     shape = tuple(np.shape(images))
     if len(shape) not in (4, 5):
         raise InputError(f"images must be [S,3,H,W] or [B,S,3,H,W]; got rank {len(shape)} shape {shape}")
     dtype = jnp.result_type(images)
     if not (_is_float(images) or dtype == jnp.uint8):
         raise InputError(f"images must be a float array in [0, 1] or a uint8 array in [0, 255]; got dtype {dtype}")
+    # a float image is legal whatever its values: only a warning (concrete arrays now, under
+    # jit from inside the program); uint8 is in range by its type
+    warn_if_out_of_range(images)
     if len(shape) == 4:
         images = images[None]
         shape = (1,) + shape
@@ -99,14 +107,67 @@ def check_query_points(query_points: Any, batch: int) -> jax.Array:
     return qp
 
 
+def heads_in_float32(tree: Any) -> Any:
+    """`tree` with every floating-point leaf narrower than float32 (bf16, f16) as float32."""
+    return jax.tree.map(lambda x: x.astype(jnp.float32) if _is_float(x) and jnp.result_type(x).itemsize < 4
+                        else x, tree)
+
+
 def check_params(params: Params, config: VGGTConfig) -> None:
-    """Catch a config that does not describe these params before shapes fail deep inside."""
+    """Catch a config that does not describe these params before shapes fail deep inside:
+    every parameter the config implies must be in the tree, with its shape (a static
+    check of paths and shapes against the converter's layout; no tracing cost). A tree
+    without `track_head` is a model without the track head (as `skip_track` loads it);
+    extra entries are left alone."""
     try:
         width = params["aggregator"]["camera_token"].shape[-1]
     except (KeyError, TypeError) as e:
-        raise InputError("params are not a converted VGGT tree (no aggregator.camera_token)") from e
+        raise InputError("params are not a converted VGGT tree (no aggregator.camera_token); "
+                         f"{_layout_hint(config, _expected_params(config, True))}") from e
     if width != config.embed_dim:
         raise InputError(f"params have embed_dim {width} but config says {config.embed_dim}")
+    want = _expected_params(config, "track_head" not in params)
+    have = flatten_params(params)
+    missing = [p for p in want if p not in have]
+    wrong = [(p, tuple(np.shape(have[p])), s) for p, s in want.items()
+             if p in have and tuple(np.shape(have[p])) != s]
+    if not (missing or wrong):
+        return
+    lines = []
+    if missing:
+        present = {p[:i] for p in have for i in range(1, len(p) + 1)}
+        roots = list(dict.fromkeys(next(p[:i] for i in range(1, len(p) + 1) if p[:i] not in present)
+                                   for p in missing))
+        lines.append("params lack " + "; ".join(_describe_missing(r, want) for r in roots[:8])
+                     + (f"; and {len(roots) - 8} more" if len(roots) > 8 else ""))
+    if wrong:
+        lines.append("params with the wrong shape: " + "; ".join(
+            f"{'.'.join(p)} {have_s}, expected {want_s}" for p, have_s, want_s in wrong[:8])
+            + (f"; and {len(wrong) - 8} more" if len(wrong) > 8 else ""))
+    parent = roots[0][:-1] if missing else wrong[0][0][:-1]
+    raise InputError(". ".join(lines) + ". " + _layout_hint(config, want, parent))
+
+
+@functools.lru_cache(maxsize=16)
+def _expected_params(config: VGGTConfig, skip_track: bool) -> dict[tuple[str, ...], tuple[int, ...]]:
+    """{path: shape} of the converted tree `config` implies (cached: a config is hashable)."""
+    return expected_param_paths(config, skip_track=skip_track)
+
+
+def _describe_missing(root: tuple[str, ...], want: dict) -> str:
+    under = [p for p in want if p[:len(root)] == root]
+    if len(under) == 1 and under[0] == root:
+        return f"{'.'.join(root)} (shape {want[root]})"
+    return f"{'.'.join(root)} (a sub-tree of {len(under)} parameters, e.g. {'.'.join(under[0])} {want[under[0]]})"
+
+
+def _layout_hint(config: VGGTConfig, want: dict, parent: tuple[str, ...] = ()) -> str:
+    """Which keys the config's layout expects at `parent` (top level by default)."""
+    keys = sorted({p[len(parent)] for p in want if p[:len(parent)] == parent and len(p) > len(parent)})
+    where = ".".join(parent) or "the top level"
+    return (f"the converted VGGT layout for this config (embed_dim {config.embed_dim}, depth {config.depth}; "
+            f"rvggt_jax.weights.converter.expected_param_shapes(config), as load_pretrained returns it) "
+            f"has at {where}: {', '.join(keys)}")
 
 
 def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
@@ -161,6 +222,10 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
     with_track = query_points is not None
     keep = set(config.needed_layers(with_track)) | set(config.return_layers)
     agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards)
+    # The heads compute in float32 whatever dtype their weights are stored in (a tree cast
+    # whole to bf16, the usual JAX idiom, would otherwise change the camera head's scan
+    # carry dtype); as `cast_params` lays them out, this is a no-op.
+    params = {name: (sub if name == "aggregator" else heads_in_float32(sub)) for name, sub in params.items()}
 
     out: dict[str, Any] = {}
     if config.enable_camera:

@@ -76,6 +76,10 @@ def sharded_forward(params: Params, images: jax.Array, config: VGGTConfig, mesh:
     shards = frame_shards(mesh, s)
     frames = P(None, FRAMES_AXIS)
     pad = shards.padded - s
+    if pad and _explicit(mesh):
+        # a user's frames-sharded images of uneven S cannot be padded in place on an
+        # explicit mesh; padding a replicated copy is what the auto mesh does
+        images = jax.sharding.reshard(images, NamedSharding(mesh, P()))
     if pad:
         images = jnp.pad(images, ((0, 0), (0, pad), (0, 0), (0, 0), (0, 0)))
     images = _constrain(images, NamedSharding(mesh, frames))
@@ -90,18 +94,36 @@ def sharded_forward(params: Params, images: jax.Array, config: VGGTConfig, mesh:
     out = jax.shard_map(local, mesh=mesh, in_specs=(P(), frames) + (P(),) * len(extra), out_specs=frames,
                         check_vma=False)(params, images, *extra)
 
+    explicit = _explicit(mesh)
     if pad and not keep_padding:
-        out = jax.tree.map(lambda a: a[:, :s], out)
+        # S frames do not split evenly: on a mesh of explicit axes JAX refuses to slice a
+        # frames-sharded axis to S (no even layout); replicated first, which is what XLA
+        # picks on an auto mesh
+        unsharded = NamedSharding(mesh, P())
+        out = jax.tree.map(lambda a: (jax.sharding.reshard(a, unsharded) if explicit else a)[:, :s], out)
     if "patch_tokens" in out:
         pt = out["patch_tokens"]
-        out["patch_tokens"] = pt.reshape((b * pt.shape[1],) + pt.shape[2:])
+        shape = (b * pt.shape[1],) + pt.shape[2:]
+        if explicit:
+            # [B, S, ...] -> [B*S, ...] interleaves the frames of B: laid out along "frames"
+            # (when S was sharded), as the docstring promises; JAX moves what it must
+            spec = P(FRAMES_AXIS) if (keep_padding or not pad) and b == 1 else P()
+            out["patch_tokens"] = jnp.reshape(pt, shape, out_sharding=NamedSharding(mesh, spec))
+        else:
+            out["patch_tokens"] = pt.reshape(shape)
     if keep_padding:
         out["frame_mask"] = _constrain(jnp.arange(shards.padded) < s, NamedSharding(mesh, P(FRAMES_AXIS)))
     return out
 
 
+def _explicit(mesh: Mesh) -> bool:
+    """Whether the "frames" axis is explicit (`jax.make_mesh`'s default in recent JAX):
+    then JAX's sharding-in-types rules apply to every op on frame-sharded arrays."""
+    return mesh.axis_types[mesh.axis_names.index(FRAMES_AXIS)] == AxisType.Explicit
+
+
 def _constrain(a: jax.Array, sharding: NamedSharding) -> jax.Array:
     """Ask for `sharding` (a reshard on a mesh of explicit axes)."""
-    if sharding.mesh.axis_types[sharding.mesh.axis_names.index(FRAMES_AXIS)] == AxisType.Explicit:
+    if _explicit(sharding.mesh):
         return jax.sharding.reshard(a, sharding)
     return jax.lax.with_sharding_constraint(a, sharding)

@@ -11,10 +11,17 @@ commit, so a new upstream revision is converted again and an old one is never mi
 Offline (`HF_HUB_OFFLINE=1` or no network) the hub cache is used; when even that lacks the
 files, the newest converted copy of the repo is used, and without one `HubError` says
 exactly which file is missing where.
+
+Concurrent runs: a copy is written into a temporary sibling folder, marked complete
+(`.complete`, last), then renamed into place, so no reader ever sees a partial folder;
+one run converts while the others wait on a lock file and then use its copy. A folder
+left by a killed run (a temporary sibling, or a copy without its marker) is removed and
+the conversion redone.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -23,7 +30,7 @@ import warnings
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["HubError", "converted_root", "is_repo_id", "resolve_checkpoint"]
+__all__ = ["HubError", "converted_root", "is_repo_id", "publish_dir", "resolve_checkpoint"]
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -124,14 +131,77 @@ def resolve_checkpoint(spec: str | os.PathLike, *, revision: str | None = None, 
         cfg = Path(_download(repo_id, CONFIG_FILE, commit))
     except Exception:  # noqa: BLE001 - no config.json: the layout is inferred from the shapes
         cfg = None
-    say(f"converting {repo_id} ({commit[:12]}) once to {dst} ...")
-    _convert_to(st, cfg, dst, progress)
+    with _cache_lock(dst, say) as locked:
+        # another run may have converted it while this one waited
+        if (dst / _READY).is_file():
+            return dst
+        if locked:  # no other run is writing now: what temporaries there are, killed runs left
+            clear_stale_temporaries(dst)
+        say(f"converting {repo_id} ({commit[:12]}) once to {dst} ...")
+        _convert_to(st, cfg, dst, progress)
     return dst
+
+
+@contextlib.contextmanager
+def _cache_lock(dst: Path, say: Callable[[str], None]):
+    """Hold `dst`'s lock file (an OS advisory lock, released when the process dies): one
+    run converts, the others wait for it and find the copy done. Where there are no such
+    locks (Windows), the atomic rename alone keeps readers safe."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield False
+        return
+    with open(dst.parent / f".{dst.name}.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            say(f"waiting for another run converting into {dst} ...")
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield True
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def publish_dir(tmp: Path, dst: Path, marker: str = _READY) -> Path:
+    """Move the finished folder `tmp` (holding `marker`, written last) to `dst` by one
+    rename, so a reader sees no `dst` or a complete one. When a complete `dst` appeared
+    meanwhile (another run won), `tmp` is discarded and theirs is used. A `dst` without
+    its marker is a partial copy of an interrupted run: moved aside and replaced. `tmp`
+    must be a sibling of `dst` (same file system). Returns `dst`."""
+    for _ in range(8):
+        if (dst / marker).is_file():
+            shutil.rmtree(tmp, ignore_errors=True)
+            return dst
+        if dst.exists():
+            aside = Path(tempfile.mkdtemp(prefix=f".{dst.name}.partial-", dir=dst.parent))
+            try:
+                os.replace(dst, aside / dst.name)
+            except FileNotFoundError:  # another run moved it first
+                pass
+            shutil.rmtree(aside, ignore_errors=True)
+        try:
+            os.rename(tmp, dst)  # fails when dst exists again (non-empty): look once more
+            return dst
+        except OSError:
+            continue
+    raise HubError(f"could not move the converted copy {tmp} to {dst}: the folder keeps changing")
+
+
+def clear_stale_temporaries(dst: Path) -> None:
+    """Remove the temporary siblings of `dst` that interrupted runs left behind (called
+    under `dst`'s lock, when no other run is writing one)."""
+    for p in dst.parent.glob(f".{dst.name}.*"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
 
 
 def _convert_to(st: Path, cfg: Path | None, dst: Path, progress: bool) -> None:
     """Convert the safetensors `st` (config `cfg` or inferred) into `dst`, atomically:
-    into a temporary sibling first, renamed when complete."""
+    into a temporary sibling first, marked complete, then renamed into place
+    (`publish_dir`)."""
     import jax
 
     from rvggt_jax.weights.converter import load_safetensors
@@ -141,15 +211,13 @@ def _convert_to(st: Path, cfg: Path | None, dst: Path, progress: bool) -> None:
         warnings.simplefilter("ignore")  # a config.json the hub mixin wrote is fine; inference is reported by load
         config = config_for_safetensors(st, cfg)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=dst.parent))
     try:
         cpu = jax.devices("cpu")[0]
         params = load_safetensors(st, config, progress=progress, leaf_fn=lambda x: jax.device_put(x, cpu))
         save_orbax(params, config, tmp, overwrite=True)
         (tmp / _READY).write_text(str(st) + "\n")
-        if dst.exists():  # an interrupted earlier conversion
-            shutil.rmtree(dst)
-        os.replace(tmp, dst)
+        publish_dir(tmp, dst)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -141,6 +141,20 @@ def main() -> None:
     tick("plans")
     report["plan"] = {"one": one.temp_bytes + one.output_bytes, "four": four.temp_bytes + four.output_bytes}
 
+    # meshes as a user makes them (jax.make_mesh, explicit axes by default in recent JAX,
+    # or auto): batch 2, 5 frames over 3 devices (padded to 6, sliced back to 5)
+    user_images = jax.random.uniform(jax.random.PRNGKey(5), (2, 5, 3, 28, 28))
+    user_ref = single(params, user_images, config)
+    report["user_meshes"] = {}
+    for axis_type in (jax.sharding.AxisType.Explicit, jax.sharding.AxisType.Auto):
+        mesh = jax.make_mesh((3,), ("frames",), devices=jax.devices()[:3], axis_types=(axis_type,))
+        out = sharded(params, user_images, config, mesh)
+        report["user_meshes"][axis_type.name] = {
+            "shape": list(out["depth"].shape),
+            "errors": {k: rel(out[k], user_ref[k]) for k in ("depth", "world_points", "pose_enc", "depth_conf")}}
+    report["default_axis_type"] = jax.make_mesh((1,), ("frames",)).axis_types[0].name
+    tick("user meshes")
+
     # a mesh without a "frames" axis is refused
     try:
         sharded_forward(params, jnp.zeros((1, 4, 3, H, W)), config, jax.make_mesh((4,), ("data",)))

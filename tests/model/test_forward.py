@@ -194,6 +194,51 @@ def test_config_that_does_not_fit_params_is_rejected(tiny):
         rvggt_forward(params, np.zeros((1, 2, 3, 28, 28), np.float32), wrong)
 
 
+def _without(tree, path):
+    """A copy of the nested dict `tree` without the entry at `path` (dotted)."""
+    *parents, last = path.split(".")
+    out = dict(tree)
+    node = out
+    for k in parents:
+        node[k] = dict(node[k])
+        node = node[k]
+    del node[last]
+    return out
+
+
+@pytest.mark.parametrize("path, expected", [
+    # a whole sub-tree: named once, with the keys its parent should hold
+    ("depth_head.scratch", r"params lack depth_head\.scratch \(a sub-tree of \d+ parameters.*"
+                           r"at depth_head: norm, projects, resize_layers, scratch"),
+    # a head: the top-level keys the config implies
+    ("point_head", r"params lack point_head .*at the top level: aggregator, camera_head, depth_head, point_head"),
+    # one leaf, with its shape
+    ("camera_head.empty_pose_tokens", r"params lack camera_head\.empty_pose_tokens \(shape \(1, 1, 9\)\)"),
+])
+def test_params_missing_a_subtree_name_the_path_and_layout(tiny, path, expected):
+    # (a bare KeyError deep in the heads before: check_params only looked at the width)
+    params, config = tiny
+    with pytest.raises(InputError, match=expected):
+        rvggt_forward(_without(params, path), np.zeros((1, 2, 3, 28, 28), np.float32), config)
+
+
+def test_params_of_the_wrong_shape_are_named(tiny):
+    params, config = tiny
+    bad = _without(params, "camera_head.empty_pose_tokens")
+    bad["camera_head"]["empty_pose_tokens"] = np.zeros((1, 1, 8), np.float32)
+    with pytest.raises(InputError, match=r"camera_head\.empty_pose_tokens \(1, 1, 8\), expected \(1, 1, 9\)"):
+        rvggt_forward(bad, np.zeros((1, 2, 3, 28, 28), np.float32), config)
+
+
+def test_params_without_track_head_need_no_track_head(tiny):
+    # a model loaded with skip_track: not missing anything, unless query points ask for it
+    params, config = tiny
+    from rvggt_jax.model.forward import check_params
+
+    check_params(_without(params, "track_head"), config)
+    check_params(params, config)
+
+
 def test_config_json_round_trip(tiny, tmp_path):
     _, config = tiny
     config.to_json(tmp_path / "config.json")

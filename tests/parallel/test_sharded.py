@@ -81,6 +81,16 @@ def test_track_head_through_the_sharded_forward(report):
         assert max(run["track_errors"].values()) < 0.1, run["track_errors"]
 
 
+@pytest.mark.parametrize("axis_type", ["Explicit", "Auto"])
+def test_meshes_as_users_make_them(report, axis_type):
+    # jax.make_mesh((3,), ("frames",)) with either axis type, batch 2, 5 frames (uneven);
+    # explicit axes (JAX's default) used to fail slicing the padded frames off
+    run = report["user_meshes"][axis_type]
+    assert run["shape"] == [2, 5, 28, 28, 1]
+    bad = {k: e for k, e in run["errors"].items() if not e <= TOL}
+    assert not bad, (axis_type, bad)
+
+
 def test_mesh_without_frames_axis(report):
     assert "axis named 'frames'" in report["no_frames_axis"]
 

@@ -85,3 +85,115 @@ def test_local_paths_win_over_repo_ids(tmp_path, monkeypatch):
     (tmp_path / "facebook" / "VGGT-1B").mkdir(parents=True)
     assert not is_repo_id("facebook/VGGT-1B")  # an existing folder of that name
     assert not is_repo_id("weights/a/b") and not is_repo_id("/abs/path") and not is_repo_id("../x")
+
+
+def _same_as_tiny(params):
+    ref, _ = __import__("rvggt_jax").load_pretrained(TINY, device_put=False)
+    want, got = dict(_leaves(ref)), dict(_leaves(params))
+    assert got.keys() == want.keys()
+    for k in want:
+        np.testing.assert_array_equal(got[k], want[k])
+
+
+def test_two_concurrent_first_runs_both_succeed(offline_hub, monkeypatch):
+    """Two runs start at once on the same repo id (threads here; the lock is per open
+    file, so it serialises threads as it does processes): one converts, the other waits
+    and uses its copy; both read complete data. (Before: both converted, and the second
+    deleted the first one's folder while the first was loading it.) The cache also holds
+    what killed runs left: a copy without its completion marker and a temporary sibling;
+    both are detected and redone."""
+    import threading
+    import time
+
+    from rvggt_jax import load_pretrained
+    from rvggt_jax.weights import converter, hub
+
+    populate_hub_cache(offline_hub, "test/tiny-vggt")
+    dst = hub.converted_root() / "test--tiny-vggt" / COMMIT
+    (dst / "params").mkdir(parents=True)
+    (dst / "params" / "half-written").write_text("x")
+    stale = dst.parent / f".{COMMIT}.tmp-killed"
+    (stale / "params").mkdir(parents=True)
+
+    conversions = []
+    real = converter.load_safetensors
+
+    def slow_load(*a, **k):  # long enough that the runs overlap
+        conversions.append(threading.get_ident())
+        time.sleep(0.5)
+        return real(*a, **k)
+
+    monkeypatch.setattr(converter, "load_safetensors", slow_load)
+    start = threading.Barrier(2)
+    results, errors = [], []
+
+    def run():
+        start.wait()
+        try:
+            results.append(load_pretrained("test/tiny-vggt", device_put=False)[0])
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=run) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert len(conversions) == 1
+    assert len(results) == 2
+    for params in results:
+        _same_as_tiny(params)
+    assert (dst / ".complete").is_file() and not (dst / "params" / "half-written").exists()
+    assert not stale.exists()
+
+
+def test_a_finished_copy_is_never_replaced(tmp_path, monkeypatch):
+    """A run that finishes converting after another one published: its copy is
+    discarded, the published folder (which the other run may be reading) stays.
+    (Before: the published folder was deleted and replaced.) The conversion itself is
+    faked: only where its result goes is tested."""
+    from rvggt_jax.weights import checkpoint, converter, hub
+
+    monkeypatch.setattr(checkpoint, "config_for_safetensors", lambda st, cfg: None)
+    monkeypatch.setattr(converter, "load_safetensors", lambda *a, **k: {})
+    monkeypatch.setattr(checkpoint, "save_orbax",
+                        lambda params, config, d, overwrite: (d / "params").mkdir() or d)
+    dst = tmp_path / "test--tiny" / COMMIT
+    (dst / "params").mkdir(parents=True)
+    (dst / "params" / "theirs").write_text("published")
+    (dst / ".complete").write_text("")
+    hub._convert_to(tmp_path / "model.safetensors", None, dst, False)  # the slower run, done
+    assert (dst / "params" / "theirs").read_text() == "published"
+    assert sorted(p.name for p in dst.parent.iterdir()) == [COMMIT]
+
+
+def test_publish_dir_race_one_wins_the_other_uses_it(tmp_path):
+    """`publish_dir` without any lock: several finished copies race to the same place;
+    every caller gets the one complete folder, and no temporary is left."""
+    import threading
+
+    from rvggt_jax.weights.hub import publish_dir
+
+    dst = tmp_path / "copy"
+    tmps = []
+    for i in range(4):
+        t = tmp_path / f".copy.tmp-{i}"
+        t.mkdir()
+        (t / "data").write_text(str(i))
+        (t / ".complete").write_text("")
+        tmps.append(t)
+    start = threading.Barrier(len(tmps))
+    got = []
+
+    def run(t):
+        start.wait()
+        got.append(publish_dir(t, dst))
+
+    threads = [threading.Thread(target=run, args=(t,)) for t in tmps]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert got == [dst] * 4 and (dst / ".complete").is_file() and (dst / "data").read_text() in "0123"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]

@@ -1,0 +1,96 @@
+"""A warning for images outside the network's input range: `warn_if_out_of_range`.
+
+The model takes images in [0, 1]; a float image in 0..255 (a forgotten `/ 255`) or with
+NaN runs without error and gives a wrong answer. A float image is legal, so only its
+values tell: concrete arrays (NumPy, JAX arrays outside `jax.jit`) are checked at once;
+under `jax.jit` the check is part of the compiled program (three reductions and a
+`jax.debug.callback` that warns on the host), so it costs no second compile and no host
+sync in the caller.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["InputRangeWarning", "warn_if_out_of_range", "range_message"]
+
+LOW, HIGH = 0.0, 1.0
+
+
+class InputRangeWarning(UserWarning):
+    """Images with values outside [0, 1] or NaN: the model's outputs are not meaningful."""
+
+
+def range_message(lo: float, hi: float, nans: int) -> str | None:
+    """The warning text for images of min `lo`, max `hi` (NaN ignored) and `nans` NaN
+    values; None when they are in range."""
+    problems = []
+    if nans:
+        problems.append(f"{int(nans)} NaN value(s)")
+    if lo <= hi and (lo < LOW or hi > HIGH):  # (lo > hi: every value is NaN)
+        problems.append(f"values in [{lo:.4g}, {hi:.4g}]")
+    if not problems:
+        return None
+    hint = " (0..255 pixel values? divide by 255)" if hi > 2.0 else ""
+    return (f"images have {' and '.join(problems)}; the model expects float RGB in [{LOW:g}, {HIGH:g}]"
+            f"{hint}: its outputs will not be meaningful")
+
+
+def _warn(lo, hi, nans) -> None:
+    msg = range_message(float(lo), float(hi), int(nans))
+    if msg is not None:
+        warnings.warn(msg, InputRangeWarning, stacklevel=2)
+
+
+def _stats(xp, x):
+    """(min, max ignoring NaN, NaN count); an all-NaN array has min +inf / max -inf."""
+    nan = xp.isnan(x)
+    return (xp.min(xp.where(nan, xp.inf, x)), xp.max(xp.where(nan, -xp.inf, x)), xp.sum(nan))
+
+
+@functools.lru_cache(maxsize=None)
+def _has_client(platform: str) -> bool:
+    try:
+        return bool(jax.devices(platform))
+    except RuntimeError:
+        return False
+
+
+def _in_program(images: jax.Array) -> None:
+    """The check as part of the traced program. A host callback can only be lowered for a
+    platform this process has a client for; a program lowered for another one (a
+    deviceless compile for a GPU or TPU, `rvggt plan`) goes without the check, chosen per
+    platform at lowering time (`lax.platform_dependent`), so it still lowers."""
+    def check(x):
+        jax.debug.callback(_warn, *_stats(jnp, x.astype(jnp.float32)))
+
+    def skip(x):
+        return None
+
+    jax.lax.platform_dependent(images, default=skip,
+                               **{p: check for p in ("cpu", "cuda", "rocm", "tpu") if _has_client(p)})
+
+
+def warn_if_out_of_range(images: Any) -> None:
+    """Warn (`InputRangeWarning`) when float `images` (any shape) hold values outside
+    [0, 1] or NaN. Concrete arrays are checked now; a tracer (under `jax.jit`, `grad`,
+    `shard_map`) gets the check inside its program, reported by `jax.debug.callback` when
+    the program runs. Integer images are not checked (their scaling is the caller's)."""
+    if not jnp.issubdtype(jnp.result_type(images), jnp.floating) or 0 in np.shape(images):
+        return  # (an empty array is the shape check's to refuse)
+    if isinstance(images, jax.core.Tracer):
+        _in_program(images)
+        return
+    if isinstance(images, jax.Array):
+        lo, hi, nans = jax.device_get(_stats(jnp, images.astype(jnp.float32)))
+    else:
+        lo, hi, nans = _stats(np, np.asarray(images, np.float32))
+    msg = range_message(float(lo), float(hi), int(nans))
+    if msg is not None:
+        warnings.warn(msg, InputRangeWarning, stacklevel=5)  # the caller of rvggt_forward
