@@ -1,12 +1,13 @@
 """A band schedule fitted to a rank profile: the rule of `rvggt calibrate`.
 
 The paper reads its schedule off the normalised rank r95/m per layer (appendix
-"Rank Spectrum of Global Attention"): low flanks (shallow, deep; r95/m < 0.05 on
-VGGT-1B), a middle band peaking above 0.30 (its "go-criterion"); merging is aggressive on
-the flanks and conservative on the peak (rho 0.99 / 0.50 / 0.99), and the K/V keeper
-density is inverted (sigma 1.5 / 1.3 / 1.7: the densest K/V in the middle). The stated
-rule below turns any profile into that U-shape, and gives back the paper's values at
-the paper's measurements.
+"Rank Spectrum of Global Attention"; Figure 1: shallow and deep effective rank <= 20,
+the middle band peaking near 90, of m = 256 sampled rows): low flanks, a middle band
+above the 0.30 "go-criterion"; merging is aggressive on the flanks and conservative on
+the peak (rho 0.99 / 0.50 / 0.99), and the K/V keeper density is inverted (sigma
+1.5 / 1.3 / 1.7: the densest K/V in the middle, the sparsest in the near-rank-1 deep
+band). The stated rule below turns any profile into that U-shape, and gives back the
+paper's values at the paper's measurements (20/256, 90/256, 1/256).
 """
 
 from __future__ import annotations
@@ -19,12 +20,13 @@ import numpy as np
 
 from rvggt_jax.compression.config import CompressionConfig, make_compression
 
-FLAT = 0.05  # r95/m of the paper's flanks: at or below it, the most aggressive merging
-GO = 0.30  # the paper's go-criterion for the middle band
+FLAT = 20 / 256  # r95/m of the paper's flanks (rank <= 20 of 256): at or below it, the most merging
+PEAK = 90 / 256  # r95/m of the paper's middle band (rank ~ 90 of 256)
+GO = 0.30  # the paper's go-criterion for the middle band (drawn on the profile plot)
 RHO_MAX = 0.99  # merge ratio at r95/m <= FLAT (the paper's flanks)
-RHO_GO = 0.50  # merge ratio at r95/m = GO (the paper's middle band)
+RHO_PEAK = 0.50  # merge ratio at r95/m = PEAK (the paper's middle band)
 KEEP_FLOOR = 9 / 25  # K/V kept fraction at r95/m = 0 (sigma 1.7: the paper's near-rank-1 deep band)
-KEEP_GO = 9 / 16  # K/V kept fraction at r95/m = GO (sigma 1.3: the paper's middle band)
+KEEP_PEAK = 9 / 16  # K/V kept fraction at r95/m = PEAK (sigma 1.3: the paper's middle band)
 # K/V tiles (t, k) a band may take, kept fraction (k/t)^2: sigma 1.7, 1.5, 1.3, none
 TILES = ((5, 3), (3, 2), (4, 3), (1, 1))
 
@@ -33,16 +35,16 @@ Bands (half maximum): tau = min + (max - min) / 2 of the mean profile r95/m; the
 band is the run of consecutive layers with r95/m >= tau around the (first) maximum;
 the layers before it are the shallow band, those after it the deep band (a flat
 profile: one middle band over every layer).
-Merge ratio of a band from its mean r95/m p: rho = {RHO_MAX} for p <= {FLAT}, then linear
-through ({GO}, {RHO_GO}) and down to 0 (clipped to [0, {RHO_MAX}], 2 decimals).
-K/V rate of a band: target kept fraction {KEEP_FLOOR:.4f} + ({KEEP_GO:.4f} - {KEEP_FLOOR:.4f}) * p / {GO}
+Merge ratio of a band from its mean r95/m p: rho = {RHO_MAX} for p <= {FLAT:.4f} (20/256), then
+linear through ({PEAK:.4f} (90/256), {RHO_PEAK}) and on down to 0 (clipped to [0, {RHO_MAX}], 2 decimals).
+K/V rate of a band: target kept fraction {KEEP_FLOOR:.4f} + ({KEEP_PEAK:.4f} - {KEEP_FLOOR:.4f}) * p / {PEAK:.4f}
 (capped at 1), rounded to the nearest tile (t, k) with kept (k/t)^2 among {list(TILES)}.
 Cache: a match computed at the first layer of each band and reused in it, except the
 first half (rounded up) of the middle band, which recomputes it every layer (the
 paper's L11-L14 of L11-L18). K/V downsampling runs in every band (the paper's text);
 everything else (protection by Psi, alpha, size bias, anchor, phase shift) as `regime`.
-On VGGT-1B's profile (flanks < 0.05, middle > 0.30) this gives back rho 0.99 / 0.50 / 0.99
-and sigma 1.5-1.7 / 1.3 / 1.7."""
+On the paper's profile (shallow 20/256, middle 90/256, deep 1/256) this gives back rho
+0.99 / 0.50 / 0.99 and sigma 1.5 / 1.3 / 1.7."""
 
 
 def find_bands(profile: Sequence[float]) -> tuple[int, int]:
@@ -71,13 +73,13 @@ def merge_ratio_for(p: float) -> float:
     """Merge ratio rho of a band of mean r95/m `p` (`RULE`)."""
     if p <= FLAT:
         return RHO_MAX
-    rho = RHO_MAX + (RHO_GO - RHO_MAX) * (p - FLAT) / (GO - FLAT)
+    rho = RHO_MAX + (RHO_PEAK - RHO_MAX) * (p - FLAT) / (PEAK - FLAT)
     return round(min(RHO_MAX, max(0.0, rho)), 2)
 
 
 def kv_tile_for(p: float) -> tuple[int, int]:
     """K/V tile (t, k) of a band of mean r95/m `p` (`RULE`)."""
-    target = min(1.0, KEEP_FLOOR + (KEEP_GO - KEEP_FLOOR) * max(0.0, p) / GO)
+    target = min(1.0, KEEP_FLOOR + (KEEP_PEAK - KEEP_FLOOR) * max(0.0, p) / PEAK)
     return min(TILES, key=lambda tk: (abs((tk[1] / tk[0]) ** 2 - target), tk[0]))
 
 

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.compression.config import CompressionConfig, LayerKind
+from rvggt_jax.diagnostics.calibrate import GO
 from rvggt_jax.compression.partition import Geometry, grid_keep, kv_static_keep
 
 # ---------------------------------------------------------------------------------------
@@ -233,7 +234,7 @@ def save_profile_png(path: Path, profile: np.ndarray, comp: CompressionConfig | 
         for h in range(per_head.shape[1]):
             ax.plot(x, per_head[:, h], ".", color="grey", ms=3, alpha=0.6)
     ax.plot(x, profile, "o-", color="black", ms=4, lw=1.2, label="mean over heads")
-    ax.axhline(0.30, color="green", ls=":", lw=1, label="0.30 (paper's go-criterion)")
+    ax.axhline(GO, color="green", ls=":", lw=1, label=f"{GO} (paper's go-criterion)")
     ax.set_xlabel("global layer")
     ax.set_ylabel("r95 / m")
     ax.set_xlim(0.5, depth + 0.5)

@@ -95,15 +95,20 @@ def load_preset(path: str | os.PathLike, depth: int | None = None) -> Compressio
 
 def check_bands(comp: CompressionConfig, where: str) -> None:
     """Bands that cover the layers: 0 <= middle start <= deep start <= depth for
-    `merge_bands` and `kv_bands`, layer lists inside [0, depth). `PresetError` naming
+    `merge_bands` and `kv_bands` (beyond depth only when their field, `merge_ratio` or
+    `kv_sigma`, is the same in every band), layer lists inside [0, depth). `PresetError` naming
     `where` and the field."""
     d = comp.depth
     if not isinstance(d, int) or d < 1:
         raise PresetError(f"{where}: depth must be a positive integer; got {d!r}")
-    for name in ("merge_bands", "kv_bands"):
+    for name, field in (("merge_bands", "merge_ratio"), ("kv_bands", "kv_sigma")):
         b = getattr(comp, name)
-        if not (isinstance(b, tuple) and len(b) == 2 and all(isinstance(v, int) for v in b)
-                and 0 <= b[0] <= b[1] <= d):
+        # past the last layer, a band start only matters when its field differs per band
+        # (the built-in presets keep 24-layer bands of uniform fields at other depths)
+        v = getattr(comp, field)
+        per_band = isinstance(v, tuple) and len(v) == 3 and d != 3 and len(set(v)) > 1
+        if not (isinstance(b, tuple) and len(b) == 2 and all(isinstance(x, int) for x in b)
+                and 0 <= b[0] <= b[1] and (b[1] <= d or not per_band)):
             raise PresetError(f"{where}: {name} {_jsonable(b)!r} do not cover the {d} layers: they are two integers "
                               f"0 <= middle start <= deep start <= {d} (shallow = [0, middle), middle = "
                               f"[middle, deep), deep = [deep, {d}))")
