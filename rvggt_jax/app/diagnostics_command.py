@@ -163,6 +163,16 @@ def _floats(a) -> Any:
 # ---------------------------------------------------------------------------------------
 
 
+def preset_forward_layers(comp, geom) -> tuple[int, ...]:
+    """The layers whose inputs `analyze_scene` reads from the preset's forward: each merge
+    band's first layer, and the last layer (so that the whole aggregator runs, as under
+    `--preset`)."""
+    from rvggt_jax.diagnostics import maps
+
+    starts = {b[0] for b in maps.merge_bands(comp, geom)} if not comp.is_dense else set()
+    return tuple(sorted(starts | {comp.depth - 1}))
+
+
 def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, out: Path, m: int = 256,
                   seed: int = 0, random_weights: bool = False) -> dict:
     """Every diagnostic of one scene (images [S, 3, H, W]) under preset `comp` (a
@@ -186,11 +196,10 @@ def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, ou
     batch = jnp.asarray(images)[None]
     pconf = dataclasses.replace(config, compression=comp)
     bands = maps.merge_bands(comp, geom) if not comp.is_dense else []
-    # the preset's own forward: the inputs of the layers that compute a match (and the
-    # last layer's, so that the whole aggregator runs: what `--preset` runs), and Psi
-    starts = tuple(b[0] for b in bands)
-    x, psi = D.layer_inputs(params, batch, pconf, tuple(sorted(set(starts) | {config.depth - 1})))
-    slot = {layer: j for j, layer in enumerate(sorted(set(starts) | {config.depth - 1}))}
+    # the preset's own forward: the inputs of the layers that compute a match, and Psi
+    kept = preset_forward_layers(comp, geom)
+    x, psi = D.layer_inputs(params, batch, pconf, kept)
+    slot = {layer: j for j, layer in enumerate(kept)}
     psi_maps = np.asarray(D.saliency_maps(psi, geom.h, geom.w))[0]
     protected = np.asarray(jax.jit(D.protected_patches, static_argnums=(0, 2))(comp, psi, geom))[0]
     files = []
@@ -255,6 +264,13 @@ def run_analyze_command(args) -> int:
         from rvggt_jax.app.commands import _check_weights
 
         _check_weights(args.weights)
+    from rvggt_jax.diagnostics import PresetError, is_preset_path, load_preset
+
+    if is_preset_path(args.preset):  # a bad file fails now, before the model loads
+        try:
+            load_preset(args.preset)
+        except PresetError as e:
+            raise CLIError(str(e)) from None
     params, config = _model(args.weights, args.quiet)
     comp = _preset(args.preset, config.depth)
     images, names = _load_scene(src, args)

@@ -210,7 +210,7 @@ def save_groups_png(path: Path, images: np.ndarray, group: np.ndarray, size: np.
         hh, ww = img.shape[:2]
         ax.imshow(img)
         ax.imshow(colours, alpha=0.65, extent=(0, ww, hh, 0), interpolation="nearest")
-        ax.set_title(f"frame {f}: {np.mean(size[f] > 1):.0%} merged", fontsize=8)
+        ax.set_title(f"frame {f}: {np.mean(size[f] > 1):.0%} in groups", fontsize=8)
     return _save(fig, path)
 
 
