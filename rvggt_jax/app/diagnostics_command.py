@@ -186,7 +186,7 @@ def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, ou
     from rvggt_jax.compression.partition import Geometry, saliency_protect_count
     from rvggt_jax.diagnostics import maps
     from rvggt_jax.diagnostics.presets_io import preset_dict
-    from rvggt_jax.model.aggregator import _plan
+    from rvggt_jax.compression.plan import layer_plan
     from rvggt_jax.planning.cost import cost_report
 
     s, _, hh, ww = images.shape
@@ -222,7 +222,7 @@ def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, ou
     group_fn = jax.jit(D.merged_groups, static_argnames=("comp", "layer", "geom", "config"))
     same_plan: dict = {}  # layers with one static plan share a compiled program
     for layer, used in bands:
-        rep = same_plan.setdefault(_plan(pconf, layer, geom), layer)
+        rep = same_plan.setdefault(dataclasses.replace(layer_plan(comp, layer, geom), layer=0), layer)
         p_block = params["aggregator"]["global_blocks"][str(layer)]
         g, size = (np.asarray(a)[0] for a in group_fn(p_block, x[slot[layer]], psi, comp=comp, layer=rep,
                                                        geom=geom, config=pconf))

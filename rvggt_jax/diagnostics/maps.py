@@ -37,12 +37,12 @@ def saliency_maps(saliency: jax.Array, h: int, w: int) -> jax.Array:
 def protected_patches(comp: CompressionConfig, saliency: jax.Array, geom: Geometry) -> jax.Array:
     """[B, S, h, w] bool: the patches the preset never merges, as the forward protects them
     (`compression.init_state`: top max(1, floor(alpha*T)) under Psi in frames >= 1, or
-    FastVGGT's stride); all False without protection. Jit-able."""
+    FastVGGT's stride); all False without protection or under the dense preset. Jit-able."""
     from rvggt_jax.compression.state import init_state
 
-    state = init_state(comp, saliency, geom)
     b = saliency.shape[0]
-    if state.protected is None:
+    state = None if comp.is_dense else init_state(comp, saliency, geom)
+    if state is None or state.protected is None:  # (dense merges nothing: nothing to protect)
         return jnp.zeros((b, geom.frames, geom.h, geom.w), bool)
     flags = state.protected.reshape(b, geom.frames, geom.per_frame)[:, :, geom.num_special:]
     return flags.reshape(b, geom.frames, geom.h, geom.w)

@@ -213,6 +213,7 @@ def test_psi_maps_and_protected_patches_are_the_forwards(tiny, golden):
         assert sorted(np.flatnonzero(prot[f].ravel()).tolist()) == sorted(top.tolist())
     unprotected = dataclasses.replace(make_compression("regime", 24), protect="none")
     assert not np.asarray(D.protected_patches(unprotected, psi, geom)).any()
+    assert not np.asarray(D.protected_patches(make_compression("dense", 24), psi, geom)).any()
 
 
 # ---------------------------------------------------------------------------------------
