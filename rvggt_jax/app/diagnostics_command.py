@@ -7,7 +7,7 @@
 
 analyze writes rank_profile.png (layer x r95/m, the preset's bands shaded),
 saliency.png (Psi and the protected patches), kv_t<T>k<K>.png (kept K/V per frame and
-their union, one per K/V tile of the preset), groups_L<l>.png (the merged groups of each
+their union, one per K/V tile of the preset), groups_<band>.png (the merged groups of each
 merge band) and diagnostics.json (every number). calibrate writes preset.json (a preset
 file for --preset), calibration.json and rank_profile.png with the proposed bands.
 """
@@ -164,12 +164,12 @@ def _floats(a) -> Any:
 
 
 def preset_forward_layers(comp, geom) -> tuple[int, ...]:
-    """The layers whose inputs `analyze_scene` reads from the preset's forward: each merge
-    band's first layer, and the last layer (so that the whole aggregator runs, as under
+    """The layers whose inputs `analyze_scene` reads from the preset's forward: the layer
+    each merge band shows (`maps.merge_bands`), and the last layer (so that the whole aggregator runs, as under
     `--preset`)."""
     from rvggt_jax.diagnostics import maps
 
-    starts = {b[0] for b in maps.merge_bands(comp, geom)} if not comp.is_dense else set()
+    starts = {b[1] for b in maps.merge_bands(comp, geom)} if not comp.is_dense else set()
     return tuple(sorted(starts | {comp.depth - 1}))
 
 
@@ -186,7 +186,6 @@ def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, ou
     from rvggt_jax.compression.partition import Geometry, saliency_protect_count
     from rvggt_jax.diagnostics import maps
     from rvggt_jax.diagnostics.presets_io import preset_dict
-    from rvggt_jax.compression.plan import layer_plan
     from rvggt_jax.planning.cost import cost_report
 
     s, _, hh, ww = images.shape
@@ -220,15 +219,14 @@ def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, ou
                        union_coverage=cov, union_frames=list(non_anchor), image=name))
     groups = []
     group_fn = jax.jit(D.merged_groups, static_argnames=("comp", "layer", "geom", "config"))
-    same_plan: dict = {}  # layers with one static plan share a compiled program
-    for layer, used in bands:
-        rep = same_plan.setdefault(dataclasses.replace(layer_plan(comp, layer, geom), layer=0), layer)
+    for band, layer, used in bands:
         p_block = params["aggregator"]["global_blocks"][str(layer)]
-        g, size = (np.asarray(a)[0] for a in group_fn(p_block, x[slot[layer]], psi, comp=comp, layer=rep,
+        g, size = (np.asarray(a)[0] for a in group_fn(p_block, x[slot[layer]], psi, comp=comp, layer=layer,
                                                        geom=geom, config=pconf))
-        name = f"groups_L{layer + 1:02d}.png"
-        files.append(maps.save_groups_png(out / name, images, g, size, used).name)
-        groups.append(dict(layer=layer, layers=used, merged_fraction_per_frame=_floats((size > 1).mean(axis=(1, 2))),
+        name = f"groups_{band}.png"
+        files.append(maps.save_groups_png(out / name, images, g, size, used, band, layer).name)
+        groups.append(dict(band=band, layer=layer, layers=used,
+                           in_groups_fraction_per_frame=_floats((size > 1).mean(axis=(1, 2))),
                            groups_of_two_or_more=int(len(np.unique(g[size > 1]))), image=name))
     cost = cost_report(pconf, s, hh, ww)
     doc = dict(

@@ -85,31 +85,36 @@ def union_coverage(geom: Geometry, tile: tuple[int, int], phase_shift: bool = Tr
     return union, float(union[:th, :tw].mean())
 
 
-def merge_bands(comp: CompressionConfig, geom: Geometry) -> list[tuple[int, list[int]]]:
-    """[(layer computing a match, layers using it)]: the merge bands of the preset on this
-    sequence (a layer that reuses a cached match joins the band that computed it)."""
+BAND_NAMES = ("shallow", "middle", "deep")
+
+
+def merge_bands(comp: CompressionConfig, geom: Geometry) -> list[tuple[str, int, list[int]]]:
+    """[(band name, the layer whose match the figure shows, the band's merging layers)]
+    for the shallow / middle / deep bands of `comp.merge_bands` that merge on this
+    sequence. The layer shown is the band's first that computes its match (a band whose
+    layers all reuse an earlier band's match shows the layer that computed it)."""
     from rvggt_jax.compression.plan import layer_plan
 
-    bands: list[tuple[int, list[int]]] = []
-    by_key: dict[str, int] = {}
-    for layer in range(comp.depth):
-        if comp.layer_kind(layer) != LayerKind.COMPRESSED:
+    lo, hi = comp.merge_bands
+    spans = ((0, lo), (lo, hi), (hi, comp.depth))
+    plans = {i: layer_plan(comp, i, geom) for i in range(comp.depth) if comp.layer_kind(i) == LayerKind.COMPRESSED}
+    merging = [i for i, p in plans.items() if p.kind == LayerKind.MERGE]
+    out = []
+    for name, (a, b) in zip(BAND_NAMES, spans):
+        layers = [i for i in merging if a <= i < min(b, comp.depth)]
+        if not layers:
             continue
-        plan = layer_plan(comp, layer, geom)
-        if plan.kind != LayerKind.MERGE:
-            continue
-        if plan.match == "reuse" and plan.match_key in by_key:
-            bands[by_key[plan.match_key]][1].append(layer)
-            continue
-        if plan.match_key is not None:
-            by_key[plan.match_key] = len(bands)
-        bands.append((layer, [layer]))
-    return bands
+        shown = next((i for i in layers if plans[i].match == "compute"), None)
+        if shown is None:  # every layer of the band reuses a match computed before it
+            key = plans[layers[0]].match_key
+            shown = next(i for i in merging if plans[i].match == "compute" and plans[i].match_key == key)
+        out.append((name, shown, layers))
+    return out
 
 
 def merged_groups(p_block, x: jax.Array, saliency: jax.Array, comp: CompressionConfig, layer: int,
                   geom: Geometry, config) -> tuple[jax.Array, jax.Array]:
-    """The match the preset computes at global layer `layer` (a band's first layer) from
+    """The match the preset computes at global layer `layer` (`merge_bands`' layer) from
     the block's input x [B, N, C] (N = S * P) and Psi [B, S, h*w]: (group [B, S, h, w]
     int32, every patch's group in the query layout; size [B, S, h, w] float32, the size of
     that group). Patches sharing a group are merged. Jit-able."""
@@ -196,14 +201,16 @@ def save_kv_png(path: Path, keep: np.ndarray, union: np.ndarray, tile: tuple[int
     return _save(fig, path)
 
 
-def save_groups_png(path: Path, images: np.ndarray, group: np.ndarray, size: np.ndarray, layers: Sequence[int]
-                    ) -> Path:
-    """The merged groups of one merge band (group, size [S, h, w]): every patch of a group
-    of two or more in its group's colour, unmerged patches grey."""
+def save_groups_png(path: Path, images: np.ndarray, group: np.ndarray, size: np.ndarray, layers: Sequence[int],
+                    band: str = "", shown: int | None = None) -> Path:
+    """The merged groups of one merge band (group, size [S, h, w], the match of layer
+    `shown`): every patch of a group of two or more in its group's colour, unmerged
+    patches grey."""
     s = group.shape[0]
     rng = np.random.default_rng(0)
     palette = rng.uniform(0.15, 1.0, (int(group.max()) + 1, 3))
-    fig, axes = _frames_figure(s, f"merged groups, layers {_ranges(layers)} (one colour per group; grey: unmerged)")
+    which = f"{band} band {_ranges(layers)}" + ("" if shown is None else f", match of L{shown + 1}")
+    fig, axes = _frames_figure(s, f"merged groups, {which} (one colour per group; grey: alone)")
     for f, ax in enumerate(axes):
         img = _image_hwc(images[f])
         colours = np.where((size[f] > 1)[..., None], palette[group[f]], 0.5)

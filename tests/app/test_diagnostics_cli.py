@@ -82,11 +82,13 @@ def test_analyze_writes_the_maps_and_every_number(analyzed):
     assert sorted(tuple(k["tile"]) for k in doc["kv"]) == [(3, 2), (5, 3)]
     for k in doc["kv"]:
         assert k["union_coverage"] == pytest.approx(D.union_coverage(geom, tuple(k["tile"]), True, [1, 2])[1])
-    bands = {b["layer"]: b["layers"] for b in doc["merge_bands"]}
-    assert bands[0] == list(range(10)) and bands[18] == list(range(18, 24))
-    assert all(0 < f <= 1 for b in doc["merge_bands"] for f in b["merged_fraction_per_frame"][1:])
+    bands = {b["band"]: (b["layer"], b["layers"]) for b in doc["merge_bands"]}
+    assert bands == {"shallow": (0, list(range(10))), "middle": (10, list(range(10, 18))),
+                     "deep": (18, list(range(18, 24)))}
+    assert all(0 < f <= 1 for b in doc["merge_bands"] for f in b["in_groups_fraction_per_frame"][1:])
     assert doc["cost"]["predicted_speedup"] > 1
-    assert {"rank_profile.png", "saliency.png", "kv_t3k2.png", "kv_t5k3.png", "groups_L01.png"} <= set(doc["files"])
+    assert {"rank_profile.png", "saliency.png", "kv_t3k2.png", "kv_t5k3.png", "groups_shallow.png",
+            "groups_middle.png", "groups_deep.png"} <= set(doc["files"])
     for name in doc["files"]:
         with Image.open(out / name) as im:
             assert im.format == "PNG" and min(im.size) > 50

@@ -190,6 +190,18 @@ def test_kv_keep_maps_follow_the_preset():
     assert no_anchor[0, :, :9].mean() == pytest.approx(4 / 9)
 
 
+def test_merge_bands_show_the_layer_that_computes_each_bands_match():
+    geom = Geometry(3, 6, 8, 5)
+    regime = make_compression("regime", 24)
+    assert D.merge_bands(regime, geom) == [("shallow", 0, list(range(10))), ("middle", 10, list(range(10, 18))),
+                                           ("deep", 18, list(range(18, 24)))]
+    # one cache band for the flanks: the deep band reuses the shallow band's match of L1
+    one_cache = dataclasses.replace(regime, cache_band_starts=(0,), no_cache_layers=tuple(range(10, 18)))
+    assert [(n, shown) for n, shown, _ in D.merge_bands(one_cache, geom)] == [
+        ("shallow", 0), ("middle", 10), ("deep", 0)]
+    assert D.merge_bands(make_compression("kv_only", 24), geom) == []
+
+
 def test_psi_maps_and_protected_patches_are_the_forwards(tiny, golden):
     """Psi of the tiny fixture through the model's patch embed (the saliency the forward
     returns) -> maps on the 8 x 11 grid equal to upstream's [CLS] saliency, and the
