@@ -197,7 +197,7 @@ def analyze_scene(params, config, images: np.ndarray, names: list[str], comp, ou
     bands = maps.merge_bands(comp, geom) if not comp.is_dense else []
     # the preset's own forward: the inputs of the layers that compute a match, and Psi
     kept = preset_forward_layers(comp, geom)
-    x, psi = D.layer_inputs(params, batch, pconf, kept)
+    x, psi, _ = D.layer_inputs(params, batch, pconf, kept, with_output=True)
     slot = {layer: j for j, layer in enumerate(kept)}
     psi_maps = np.asarray(D.saliency_maps(psi, geom.h, geom.w))[0]
     protected = np.asarray(jax.jit(D.protected_patches, static_argnums=(0, 2))(comp, psi, geom))[0]

@@ -114,22 +114,28 @@ def head_ranks(q: jax.Array, k: jax.Array, query_idx, energy: float = ENERGY) ->
 # ---------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("config", "layers"))
-def layer_inputs(params, images: jax.Array, config, layers: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+@functools.partial(jax.jit, static_argnames=("config", "layers", "with_output"))
+def layer_inputs(params, images: jax.Array, config, layers: tuple[int, ...], with_output: bool = False):
     """The inputs of global blocks `layers` (the frame-block output of each layer, what
     the global block reads) and the saliency Psi.
 
     images [B, S, 3, H, W] in [0, 1] -> (x [K, B, S*P, C] float32 for the K layers, Psi
-    [B, S, h*w]). Runs the aggregator under `config` (its compression included) through
-    its kept-layer machinery: no hook in the hot path."""
+    [B, S, h*w]), and with `with_output` (the last layer among `layers`) also the
+    aggregator's output [B, S, P, 2C] (what the heads read of the last layer: every
+    global block then runs). Runs the aggregator under `config` (its compression
+    included) through its kept-layer machinery: no hook in the hot path."""
     from rvggt_jax.model.aggregator import aggregator_forward
 
     if not layers:
         raise ValueError("layer_inputs needs at least one layer")
+    if with_output and config.depth - 1 not in layers:
+        raise ValueError(f"the aggregator's output is layer {config.depth - 1}'s: add it to `layers`")
     b, s = images.shape[:2]
     agg, _, saliency = aggregator_forward(params["aggregator"], images, config, layers)
     c = config.embed_dim
     x = jnp.stack([agg[i].array()[..., :c].reshape(b, -1, c) for i in layers])
+    if with_output:
+        return x, saliency, agg[config.depth - 1].array()
     return x, saliency
 
 

@@ -1,7 +1,8 @@
 """`rvggt analyze` and `rvggt calibrate` on the bundled demo images with the tiny
 random-weight model (in this process, 154 pixels wide: one compiled program per forward,
-shared by the tests), `--preset path.json` (a file written from regime runs the very
-program regime runs, bit for bit), and the analyze images in `rvggt view`'s panel."""
+shared by the tests), the layer inputs they measure against upstream's, `--preset
+path.json` (a file written from regime runs the very program regime runs, bit for bit),
+and the analyze images in `rvggt view`'s panel."""
 
 from __future__ import annotations
 
@@ -94,6 +95,26 @@ def test_analyze_writes_the_maps_and_every_number(analyzed):
             assert im.format == "PNG" and min(im.size) > 50
 
 
+def test_layer_inputs_are_the_global_blocks_inputs(analyzed):
+    """The dense layer inputs rank_profile measures are upstream's frame-block outputs of
+    every layer (the golden aggregator layers of the tiny fixture: the first half of each
+    [B, S, P, 2C] layer). Same shapes and config as analyze's: no new compile."""
+    from safetensors.numpy import load_file
+
+    from rvggt_jax.weights.checkpoint import load_checkpoint
+    from tests.helpers import TINY
+
+    golden = load_file(TINY / "io.safetensors")
+    params, config = load_checkpoint(str(TINY), skip_track=True, progress=False)  # as analyze loads
+    compiled = D.layer_inputs._cache_size()
+    x, psi = D.layer_inputs(params, jax.numpy.asarray(golden["images"]), config.with_compression("dense"),
+                            tuple(range(24)))
+    assert D.layer_inputs._cache_size() == compiled
+    want = np.stack([golden[f"aggregated_{i:02d}"][..., :32].reshape(1, -1, 32) for i in range(24)])
+    np.testing.assert_allclose(np.asarray(x), want, rtol=2e-4, atol=2e-4)
+    np.testing.assert_allclose(np.asarray(psi), golden["dino_cls_saliency"], rtol=1e-4, atol=1e-6)
+
+
 def test_calibrate_from_analyze_json_and_from_images(analyzed, tmp_path, capsys):
     out, doc = analyzed
     assert main(["calibrate", str(out / dc.ANALYSIS_JSON), "--out", str(tmp_path / "a")]) == 0
@@ -131,13 +152,14 @@ def test_a_preset_file_written_from_regime_runs_identically(analyzed, tmp_path):
     assert by_file == by_name and by_file.compression == regime
     images, _ = _scene()
     layers = dc.preset_forward_layers(regime, Geometry(3, 8, 11, 5))  # what analyze ran
-    x_name, psi_name = D.layer_inputs(params, images[None], by_name, layers)
+    by_name_out = D.layer_inputs(params, images[None], by_name, layers, with_output=True)
     compiled = D.layer_inputs._cache_size()
-    x_file, psi_file = D.layer_inputs(params, images[None], by_file, layers)
+    by_file_out = D.layer_inputs(params, images[None], by_file, layers, with_output=True)
     assert D.layer_inputs._cache_size() == compiled
-    assert np.array_equal(np.asarray(x_file), np.asarray(x_name))
-    assert np.array_equal(np.asarray(psi_file), np.asarray(psi_name))
-    assert np.isfinite(np.asarray(x_file)).all()
+    # the layer inputs, Psi and the aggregator's output [B, S, P, 2C] the heads read
+    for a, b in zip(by_file_out, by_name_out):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    assert by_file_out[2].shape == (1, 3, 5 + 8 * 11, 64) and np.isfinite(np.asarray(by_file_out[2])).all()
 
 
 def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
