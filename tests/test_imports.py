@@ -208,6 +208,7 @@ IMPORT_RULES = {
     "train": {"config", "geometry", "eval", "model", "synthetic", "weights"},
     "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},
     "examples_data": set(),
+    "diagnostics": {"config", "compression", "model", "planning"},
 }
 ANYTHING = ("app", "convert")  # the command line and the `python -m rvggt_jax.convert` entry
 

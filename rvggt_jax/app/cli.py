@@ -11,6 +11,12 @@ in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
                                           tiny RANDOM-weight model (seconds)
     rvggt finetune DATA_DIR --out DIR     fine-tune on images + cameras (+ depth); see
                                           docs/training.md (`rvggt_jax.train`)
+    rvggt analyze IMAGES --weights CKPT --out DIR
+                                          the paper's diagnostics: attention rank per
+                                          layer, saliency and K/V coverage maps
+    rvggt calibrate SCENE... --out DIR    a band schedule fitted to a model and data, as a
+                                          preset file for --preset path.json
+                                          (`rvggt_jax.app.diagnostics_command`)
     rvggt plan --frames N --target T      will it fit? XLA's memory plan for a GPU or TPU
                                           that need not be here (exit 0 fits, 3 does not;
                                           `rvggt_jax.app.plan_command`)
@@ -113,8 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
     from rvggt_jax.app.eval_command import add_eval_parser
     from rvggt_jax.app.finetune_command import add_finetune_parser
     from rvggt_jax.app.plan_command import add_plan_parser
+    from rvggt_jax.app.diagnostics_command import add_diagnostics_parsers
 
     add_eval_parser(sub)
+    add_diagnostics_parsers(sub)
     add_finetune_parser(sub)
     add_plan_parser(sub)
     return parser
@@ -227,8 +235,9 @@ def _ba_options(args: argparse.Namespace):
 
 
 def _common_options(p: argparse.ArgumentParser, presets: str) -> None:
-    p.add_argument("--preset", default=None, metavar="NAME",
-                   help=f"compression preset of the global attention ({presets}); default: the checkpoint's")
+    p.add_argument("--preset", default=None, metavar="NAME|FILE",
+                   help=f"compression preset of the global attention ({presets}), or a preset file path.json "
+                        f"(written by `rvggt calibrate`); default: the checkpoint's")
     p.add_argument("--dtype", default=_DEFAULTS.dtype, choices=("float32", "bfloat16"),
                    help="compute dtype of the aggregator (bfloat16: upstream's mixed precision, about half "
                         "the memory; the heads stay float32; default %(default)s)")
@@ -277,6 +286,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from rvggt_jax.app.finetune_command import run_finetune_command
 
             run_finetune_command(args)
+        elif args.command in ("analyze", "calibrate"):
+            from rvggt_jax.app import diagnostics_command as diag
+
+            run = diag.run_analyze_command if args.command == "analyze" else diag.run_calibrate_command
+            return run(args)
         elif args.command == "plan":
             from rvggt_jax.app.plan_command import run_plan_command
 

@@ -297,8 +297,12 @@ def _model_for(local_weights, weights, options: ReconstructOptions):
     """`(params, config)` of the checkpoint with the options' preset and dtype applied."""
     params, config = load_model(local_weights, options.quiet, name=weights, with_track=options.ba is not None)
     if options.preset is not None:
+        import dataclasses
+
+        from rvggt_jax.diagnostics.presets_io import resolve_preset
+
         try:
-            config = config.with_compression(options.preset)
+            config = dataclasses.replace(config, compression=resolve_preset(options.preset, config.depth))
         except ValueError as e:
             raise CLIError(one_line(e)) from None
     if options.points_from == "pointmap" and not config.enable_point:

@@ -23,7 +23,8 @@ def add_finetune_parser(sub) -> None:
     p.add_argument("--warmup", type=int, default=None, help="warm-up steps (default: 10%% of --steps, <= 500)")
     p.add_argument("--train", default="all",
                    help="'all', 'heads', or comma-separated parameter path prefixes, e.g. depth_head,camera_head")
-    p.add_argument("--preset", default=None, help="compression preset during training (default: dense)")
+    p.add_argument("--preset", default=None, help="compression preset during training, a name or a preset file path.json "
+                                                     "(default: dense)")
     p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
     p.add_argument("--remat", action="store_true", help="rematerialise every block (less memory, ~1.3x time)")
     p.add_argument("--save-every", type=int, default=500)
@@ -41,11 +42,22 @@ def run_finetune_command(args) -> int:
     except ValueError:
         raise InputError(f"--size must be HxW, e.g. 224x294; got {args.size!r}") from None
     train = args.train if args.train in ("all", "heads") else tuple(t for t in args.train.split(",") if t)
+    # a preset file is applied here (the train loop takes preset names)
+    from rvggt_jax.diagnostics.presets_io import is_preset_path, load_preset, resolve_preset
+
+    preset_file = args.preset if args.preset and is_preset_path(args.preset) else None
+    if preset_file:
+        load_preset(preset_file)  # a bad file fails before the model loads
     opts = FinetuneOptions(steps=args.steps, frames=args.frames, size=(h, w), batch=args.batch,
-                           learning_rate=args.lr, warmup_steps=args.warmup, train=train, preset=args.preset,
+                           learning_rate=args.lr, warmup_steps=args.warmup, train=train,
+                           preset=None if preset_file else args.preset,
                            dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)
     if not Path(args.data_dir).is_dir():
         raise InputError(f"no such data folder: {args.data_dir}")
     params, config = load_model(args.weights, args.config, args.seed)
+    if preset_file:
+        import dataclasses
+
+        config = dataclasses.replace(config, compression=resolve_preset(preset_file, config.depth))
     finetune(args.data_dir, args.out, params, config, opts, log=(lambda s: None) if args.quiet else print)
     return 0

@@ -18,6 +18,21 @@ def known_presets() -> tuple[str, ...]:
     return tuple(PRESETS)
 
 
+def check_preset(value: str) -> None:
+    """A --preset value: a known name, or a preset file that exists and parses (its depth
+    is checked against the model's later, when the model is loaded). `CLIError` else."""
+    from rvggt_jax.diagnostics.presets_io import PresetError, is_preset_path, load_preset
+
+    if is_preset_path(value):
+        try:
+            load_preset(value)
+        except PresetError as e:
+            raise CLIError(str(e)) from None
+    elif value not in known_presets():
+        raise CLIError(f"unknown preset {value!r}; known presets: {', '.join(known_presets())}, or a preset file "
+                       f"path.json")
+
+
 def select_frames(paths: Sequence[Path], max_frames: int | None) -> list[Path]:
     """At most `max_frames` of `paths`, evenly spaced over the sorted list, first and
     last included (all of them when `max_frames` is None or large enough)."""
@@ -51,8 +66,8 @@ class ReconstructOptions:
         are 0 in the network input and have no point or depth in any output
         (`rvggt_jax.io.masks`); None: no masks. Images only, not a video.
     Model:
-      preset: compression preset of the global attention (`known_presets()`); None: the
-        checkpoint's.
+      preset: compression preset of the global attention (`known_presets()`) or a preset
+        file path.json (`rvggt_jax.diagnostics.load_preset`); None: the checkpoint's.
       dtype: the aggregator's compute dtype, "float32" or "bfloat16" (the heads stay float32).
       devices: split the frames over this many local devices; None: all of them when
         there are several.
@@ -106,8 +121,8 @@ class ReconstructOptions:
             raise CLIError(str(e)) from None
         if self.max_frames is not None and self.max_frames < 1:
             raise CLIError(f"--max-frames must be at least 1; got {self.max_frames}")
-        if self.preset is not None and self.preset not in known_presets():
-            raise CLIError(f"unknown preset {self.preset!r}; known presets: {', '.join(known_presets())}")
+        if self.preset is not None:
+            check_preset(self.preset)
         if self.dtype not in ("float32", "bfloat16"):
             raise CLIError(f"unknown dtype {self.dtype!r}; use float32 or bfloat16")
         if self.max_points is not None and self.max_points < 1:

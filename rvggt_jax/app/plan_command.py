@@ -42,7 +42,8 @@ def add_plan_parser(sub) -> None:
                         "reconstruct` crops it)")
     p.add_argument("--width", type=int, default=518, metavar="W", help="network input width (default %(default)s)")
     p.add_argument("--preset", default="dense", metavar="P",
-                   help=f"compression preset ({', '.join(known_presets())}; default %(default)s)")
+                   help=f"compression preset ({', '.join(known_presets())}, or a preset file path.json; "
+                        f"default %(default)s)")
     p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"),
                    help="the aggregator's compute dtype (default %(default)s)")
     p.add_argument("--param-dtype", default=None, choices=("float32", "bfloat16"),
@@ -89,8 +90,11 @@ def _config(args: argparse.Namespace):
     for name in ("frames", "batch", "devices"):
         if getattr(args, name) < 1:
             _fail(f"--{name} must be at least 1; got {getattr(args, name)}")
-    if args.preset not in known_presets():
-        _fail(f"unknown preset {args.preset!r}; known presets: {', '.join(known_presets())}")
+    from rvggt_jax.diagnostics.presets_io import is_preset_path
+
+    if not is_preset_path(args.preset) and args.preset not in known_presets():
+        _fail(f"unknown preset {args.preset!r}; known presets: {', '.join(known_presets())}, or a preset file "
+              f"path.json")
     try:
         base = VGGTConfig.vggt_1b() if args.config is None else VGGTConfig.from_json(args.config)
     except (OSError, ValueError, TypeError) as e:
@@ -102,7 +106,10 @@ def _config(args: argparse.Namespace):
         if v < ps or v % ps:
             _fail(f"--{name} must be a positive multiple of the patch size {ps}; got {v}")
     try:
-        return base.with_compression(args.preset).with_dtype(args.dtype).with_attention(args.attention)
+        from rvggt_jax.diagnostics.presets_io import resolve_preset
+
+        base = dataclasses.replace(base, compression=resolve_preset(args.preset, base.depth))
+        return base.with_dtype(args.dtype).with_attention(args.attention)
     except ValueError as e:
         _fail(str(e))
 

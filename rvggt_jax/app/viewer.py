@@ -8,6 +8,8 @@ one camera frustum per image under `/cameras/frame_000`, `/cameras/frame_001`, .
 confidence slider (keep points at or above a percentile of the stored points'
 confidences), a frame selector (all frames, or one frame's points with its frustum
 highlighted) and the point size. At most `MAX_SHOWN` points are sent to the browser.
+When the folder (or its diagnostics/ subfolder) holds what `rvggt analyze` wrote, its
+images (rank profile, saliency, K/V coverage, merged groups) are shown in a panel folder.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAX_SHOWN", "Reconstruction", "Viewer", "load_reconstruction", "serve"]
+__all__ = ["MAX_SHOWN", "Reconstruction", "Viewer", "diagnostics_images", "load_reconstruction", "serve"]
 
 MAX_SHOWN = 1_000_000  # points sent to the browser (a random subset beyond that)
 ALL_FRAMES = "all frames"
@@ -103,6 +105,7 @@ class Viewer:
         from rvggt_jax.io.colmap import colmap_qvec
 
         self.server, self.rec = server, rec
+        self.diagnostics: list = []  # GUI images of `rvggt analyze` (`add_diagnostics_panel`)
         server.scene.set_up_direction("-y")  # OpenCV world: y points down
         self.scale = _frustum_scale(rec)
         gui = server.gui
@@ -173,6 +176,36 @@ class Viewer:
                 point_shape="rounded")
 
 
+def diagnostics_images(out_dir: str | os.PathLike) -> list[Path]:
+    """The PNGs `rvggt analyze` wrote in `out_dir` or `out_dir`/diagnostics (those its
+    diagnostics.json lists and that exist), in its order; [] when there are none."""
+    found = []
+    for folder in (Path(out_dir), Path(out_dir) / "diagnostics"):
+        try:
+            listed = json.loads((folder / "diagnostics.json").read_text())["files"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        found += [folder / name for name in listed
+                  if isinstance(name, str) and name.endswith(".png") and (folder / name).is_file()]
+    return found
+
+
+def add_diagnostics_panel(server, out_dir: str | os.PathLike) -> list:
+    """A collapsed panel folder with the analyze images of `out_dir` (`diagnostics_images`);
+    returns their GUI handles ([] and no folder when there are none)."""
+    from PIL import Image
+
+    paths = diagnostics_images(out_dir)
+    if not paths:
+        return []
+    handles = []
+    with server.gui.add_folder("diagnostics (rvggt analyze)", expand_by_default=False):
+        for p in paths:
+            with Image.open(p) as im:
+                handles.append(server.gui.add_image(np.asarray(im.convert("RGB")), label=p.stem, format="png"))
+    return handles
+
+
 def start(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1", verbose: bool = False):
     """Start a viser server showing `out_dir` -> (server, Viewer); returns at once (the
     server runs in its own threads; `server.stop()` ends it)."""
@@ -183,7 +216,9 @@ def start(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1",
         server = viser.ViserServer(host=host, port=port, verbose=verbose)
     except OSError as e:
         raise ViewerError(f"cannot serve on {host}:{port}: {e.strerror or e} (choose another --port)") from None
-    return server, Viewer(server, rec)
+    viewer = Viewer(server, rec)
+    viewer.diagnostics = add_diagnostics_panel(server, out_dir)
+    return server, viewer
 
 
 def serve(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1") -> None:
