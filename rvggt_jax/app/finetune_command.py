@@ -18,7 +18,10 @@ def add_finetune_parser(sub) -> None:
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--frames", type=int, default=8, help="frames per sequence (default %(default)s)")
     p.add_argument("--size", default="224x294", help="network input HxW, multiples of 14 (default %(default)s)")
-    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--batch", type=int, default=1, help="scenes per step (default %(default)s)")
+    p.add_argument("--accumulate", type=int, default=1, metavar="K",
+                   help="gradient accumulation: each step's --batch scenes in K micro-batches of batch/K, one at a "
+                        "time (the memory of batch/K scenes, the update of all of them); K must divide --batch")
     p.add_argument("--lr", type=float, default=1e-5, help="peak learning rate (default %(default)s)")
     p.add_argument("--warmup", type=int, default=None, help="warm-up steps (default: 10%% of --steps, <= 500)")
     p.add_argument("--train", default="all",
@@ -42,6 +45,7 @@ def run_finetune_command(args) -> int:
         raise InputError(f"--size must be HxW, e.g. 224x294; got {args.size!r}") from None
     train = args.train if args.train in ("all", "heads") else tuple(t for t in args.train.split(",") if t)
     opts = FinetuneOptions(steps=args.steps, frames=args.frames, size=(h, w), batch=args.batch,
+                           accumulate=args.accumulate,
                            learning_rate=args.lr, warmup_steps=args.warmup, train=train, preset=args.preset,
                            dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)
     if not Path(args.data_dir).is_dir():
