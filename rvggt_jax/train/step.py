@@ -189,12 +189,12 @@ def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc:
             (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, mb, config, tc.loss)
         return jax.tree.map(lambda a, x: a + x.astype(jnp.float32), acc, (loss, parts, grads)), None
 
-    like = jax.eval_shape(lambda p, b: jax.value_and_grad(loss_fn, has_aux=True)(p, b, config, tc.loss), params,
-                          jax.tree.map(lambda x: x[0], micro))
-    (loss_s, parts_s), grads_s = like
-    zero = jax.tree.map(lambda a: jnp.zeros(a.shape, jnp.float32), (loss_s, parts_s, grads_s))
+    # float32 sums of the loss, its parts (shapes: a forward trace) and the gradient (the params')
+    loss_parts = jax.eval_shape(lambda p, b: loss_fn(p, b, config, tc.loss), params,
+                                jax.tree.map(lambda x: x[0], micro))
+    zero = jax.tree.map(lambda a: jnp.zeros(jnp.shape(a), jnp.float32), (*loss_parts, params))
     (loss, parts, grads), _ = jax.lax.scan(one, zero, micro)
-    grads = jax.tree.map(lambda g, s: g.astype(s.dtype), grads, grads_s)
+    grads = jax.tree.map(lambda g, p: g.astype(jnp.result_type(p)), grads, params)
     return (loss, parts), grads
 
 

@@ -1,10 +1,11 @@
 """The attention op's backward (issue 25, item 1): the blocked kernel's custom VJP (flash
 attention's backward, O(N d) memory) against autodiff of a plain float32 reference
 attention, at 1e-5: dense, `attention_with_lse` with its log-sum-exp output
-differentiated, removed keys, bfloat16; XLA's plan of the gradient growing linearly with N; the GPU and TPU gradient programs
-taking cuDNN's and the Pallas kernel's own backwards. The ring's backward on host
-devices: tests/parallel/test_sharded.py (it needs 4 devices); a K/V-downsampled and a
-merged (size-bias) global block: tests/compression/test_block_grad.py."""
+differentiated, removed keys, bfloat16; XLA's plan of the gradient growing linearly with
+N; the GPU and TPU gradient programs taking cuDNN's and the Pallas kernel's own
+backwards. The ring's backward on host devices: tests/parallel/test_sharded.py (it needs
+4 devices); a K/V-downsampled and a merged (size-bias) global block:
+tests/compression/test_block_grad.py."""
 
 from __future__ import annotations
 
