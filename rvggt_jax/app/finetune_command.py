@@ -18,7 +18,10 @@ def add_finetune_parser(sub) -> None:
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--frames", type=int, default=8, help="frames per sequence (default %(default)s)")
     p.add_argument("--size", default="224x294", help="network input HxW, multiples of 14 (default %(default)s)")
-    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--batch", type=int, default=1, help="scenes per step (default %(default)s)")
+    p.add_argument("--accumulate", type=int, default=1, metavar="K",
+                   help="gradient accumulation: each step's --batch scenes in K micro-batches of batch/K, one at a "
+                        "time (the memory of batch/K scenes, the update of all of them); K must divide --batch")
     p.add_argument("--lr", type=float, default=1e-5, help="peak learning rate (default %(default)s)")
     p.add_argument("--warmup", type=int, default=None, help="warm-up steps (default: 10%% of --steps, <= 500)")
     p.add_argument("--train", default="all",
@@ -49,6 +52,7 @@ def run_finetune_command(args) -> int:
     if preset_file:
         load_preset(preset_file)  # a bad file fails before the model loads
     opts = FinetuneOptions(steps=args.steps, frames=args.frames, size=(h, w), batch=args.batch,
+                           accumulate=args.accumulate,
                            learning_rate=args.lr, warmup_steps=args.warmup, train=train,
                            preset=None if preset_file else args.preset,
                            dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)

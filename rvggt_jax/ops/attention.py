@@ -31,6 +31,13 @@ libtpu is): a CPU-only install traces the blocked kernel alone.
 
 Precision: q, k, v in the compute dtype (float32 or bfloat16); logits, softmax
 statistics and the value accumulation in float32; the result in q's dtype.
+
+Gradients: every kernel's backward is O(N d) in memory. The blocked kernel's is a
+`jax.custom_vjp` (flash attention's backward: each query block's weights recomputed from
+q, k and the saved log-sum-exp; the key bias gets its gradient); cuDNN's and the Pallas
+TPU kernel's are their own fused backwards, which the op reaches unchanged.
+`attention_with_lse` is differentiable in both outputs (ring attention's fold takes the
+log-sum-exp's gradient).
 """
 
 from __future__ import annotations

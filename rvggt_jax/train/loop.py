@@ -33,6 +33,7 @@ class FinetuneOptions:
     frames: int = 8
     size: tuple[int, int] = (224, 294)
     batch: int = 1
+    accumulate: int = 1  # micro-batches per step: `batch` scenes, `batch / accumulate` at a time
     learning_rate: float = 1e-5
     warmup_steps: int | None = None  # default: 10% of the steps, at most 500
     train: str | tuple[str, ...] = "all"
@@ -64,6 +65,10 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     out = Path(out)
     if opts.steps < 1 or opts.frames < 1 or opts.batch < 1:
         raise InputError(f"steps, frames and batch must be >= 1; got {opts.steps}, {opts.frames}, {opts.batch}")
+    if opts.accumulate < 1 or opts.batch % opts.accumulate:
+        divisors = [k for k in range(1, opts.batch + 1) if opts.batch % k == 0]
+        raise InputError(f"--accumulate {opts.accumulate} must divide --batch {opts.batch} (micro-batches of "
+                         f"batch / accumulate scenes): --batch {opts.batch} takes --accumulate in {divisors}")
     scenes = data_mod.folder_scenes(data_dir)
     usable = [s for s in scenes if len(s) >= opts.frames]
     if not usable:
@@ -74,7 +79,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     config = config.with_dtype(opts.dtype).with_remat(opts.remat)
     warmup = opts.warmup_steps if opts.warmup_steps is not None else min(500, opts.steps // 10)
     tc = TrainConfig(learning_rate=opts.learning_rate, warmup_steps=warmup, total_steps=opts.steps,
-                     train=opts.train).validate()
+                     train=opts.train, accumulate=opts.accumulate).validate()
 
     state = init_state(params, tc)
     start = latest_step(out)

@@ -32,12 +32,22 @@ Terms (weights in `LossConfig`; upstream's defaults where upstream has the term)
 
 Every mean is over valid elements, guarded against an empty mask (a batch without
 depth contributes 0, not NaN).
+
+Gradient accumulation (`TrainConfig.accumulate`) splits a batch into micro-batches whose
+losses must add up to the whole batch's: every mean here is a sum over the batch divided
+by a count that depends on the data only (valid pixels, elements), so
+`record_denominators` takes the whole batch's counts once and, under
+`shared_denominators`, each micro-batch's loss divides its sums by those: the
+micro-batch losses, their parts and their gradients then sum to the whole batch's
+exactly (up to float summation order), whatever the masks of each scene.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
-from typing import Any, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -64,10 +74,69 @@ class LossConfig:
     grad_scales: int = 3
 
 
+class _Denominators:
+    """The counts of the means of one loss evaluation, in the order the loss code takes
+    them: recorded (`totals` None), or replaced by the given `totals` (a whole batch's)."""
+
+    def __init__(self, totals: list[jax.Array] | None = None):
+        self.totals, self.seen = totals, []
+
+    def __call__(self, count: jax.Array) -> jax.Array:
+        self.seen.append(count)
+        if self.totals is None:
+            return count
+        if len(self.seen) > len(self.totals):
+            raise RuntimeError(f"this loss takes more means than the {len(self.totals)} recorded for the batch "
+                               "(a micro-batch's loss must be the same code as the whole batch's)")
+        return self.totals[len(self.seen) - 1]
+
+
+_DENOMINATORS: contextvars.ContextVar[_Denominators | None] = contextvars.ContextVar("rvggt_loss_denominators",
+                                                                                     default=None)
+
+
+def _denominator(count: jax.Array) -> jax.Array:
+    hook = _DENOMINATORS.get()
+    return count if hook is None else hook(count)
+
+
+def record_denominators(loss: Callable[[], Any]) -> list[jax.Array]:
+    """The count (float32 scalar) of every mean `loss()` takes (e.g. `vggt_loss` of a whole
+    batch), in order. They depend on the batch's masks and shapes only, so `loss` may be
+    given outputs of the right shapes whose values do not matter (zeros): under `jit`
+    XLA drops everything but the counts."""
+    token = _DENOMINATORS.set(rec := _Denominators())
+    try:
+        loss()
+    finally:
+        _DENOMINATORS.reset(token)
+    return [jnp.asarray(c, jnp.float32) for c in rec.seen]
+
+
+@contextlib.contextmanager
+def shared_denominators(totals: list[jax.Array]) -> Iterator[None]:
+    """Every mean taken inside divides by the next of `totals` (`record_denominators` of
+    the whole batch) instead of its own count: a micro-batch's share of the whole batch's
+    loss. Raises if the loss inside takes a different number of means."""
+    hook = _Denominators(totals)
+    token = _DENOMINATORS.set(hook)
+    try:
+        yield
+    finally:
+        _DENOMINATORS.reset(token)
+    if len(hook.seen) != len(totals):
+        raise RuntimeError(f"the loss took {len(hook.seen)} means where the batch's took {len(totals)}")
+
+
 def _masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
     """mean of x over mask (0 when the mask is empty, never NaN)."""
     m = mask.astype(x.dtype)
-    return jnp.sum(x * m) / jnp.maximum(jnp.sum(m), 1.0)
+    return jnp.sum(x * m) / jnp.maximum(_denominator(jnp.sum(m)), 1.0)
+
+
+def _mean(x: jax.Array) -> jax.Array:
+    """mean of every element of x (the count through `_denominator`, as for masked means)."""
+    return jnp.sum(x) / _denominator(jnp.asarray(x.size, x.dtype))
 
 
 def camera_loss(pose_enc_list: list[jax.Array], extrinsics: jax.Array, intrinsics: jax.Array,
@@ -81,7 +150,7 @@ def camera_loss(pose_enc_list: list[jax.Array], extrinsics: jax.Array, intrinsic
     parts = {}
     for i, pred in enumerate(pose_enc_list):
         err = jnp.abs(pred - gt)
-        lt, lr, lf = jnp.mean(err[..., :3]), jnp.mean(err[..., 3:7]), jnp.mean(err[..., 7:])
+        lt, lr, lf = _mean(err[..., :3]), _mean(err[..., 3:7]), _mean(err[..., 7:])
         total = total + cfg.camera_gamma ** (n - 1 - i) * (cfg.weight_trans * lt + cfg.weight_rot * lr
                                                            + cfg.weight_focal * lf)
         parts = {"loss_T": lt, "loss_R": lr, "loss_FL": lf}
@@ -130,7 +199,7 @@ def track_loss(tracks: jax.Array, vis: jax.Array, gt_tracks: jax.Array, gt_vis: 
     [B, S, N] probabilities; gt_tracks [B, S, N, 2], gt_vis [B, S, N] in {0, 1}."""
     err = jnp.sum(jnp.abs(tracks - gt_tracks), axis=-1)
     p = jnp.clip(vis, 1e-6, 1 - 1e-6)
-    bce = -jnp.mean(gt_vis * jnp.log(p) + (1 - gt_vis) * jnp.log(1 - p))
+    bce = -_mean(gt_vis * jnp.log(p) + (1 - gt_vis) * jnp.log(1 - p))
     return {"loss_track": _masked_mean(err, gt_vis > 0.5), "loss_vis": bce}
 
 

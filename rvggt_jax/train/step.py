@@ -7,6 +7,12 @@
     save_state(state, "ckpt/", model_config=config, train_config=tc)
     state = restore_state("ckpt/", init_state(params, tc))   # resumes exactly
 
+Gradient accumulation: `TrainConfig(accumulate=K)` splits each batch of B scenes into K
+micro-batches of B / K (a `lax.scan`: one micro-batch's activations at a time) whose
+gradients add up to the whole batch's, every loss mean divided by the whole batch's
+count (`losses.shared_denominators`): one update, the same as the step on all B scenes
+at once (to float summation order), whatever the scenes' masks.
+
 The optimiser: global-norm clipping, then AdamW (decoupled weight decay on kernels,
 i.e. leaves of rank >= 2, not on biases, norms, tokens or LayerScale) with a linear
 warm-up from 0 to `learning_rate` over `warmup_steps` and a cosine decay to
@@ -29,7 +35,7 @@ import jax.numpy as jnp
 import optax
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.train.losses import LossConfig, vggt_loss
+from rvggt_jax.train.losses import LossConfig, record_denominators, shared_denominators, vggt_loss
 
 TRAIN, FROZEN = "train", "frozen"
 HEADS = ("camera_head", "depth_head", "point_head", "track_head")
@@ -41,7 +47,8 @@ class TrainConfig:
 
     train: what is trained: "all", "heads" (everything but the aggregator), or a tuple
     of path prefixes of the parameter tree ("depth_head", "aggregator/global_blocks");
-    the rest is frozen."""
+    the rest is frozen.
+    accumulate: micro-batches per step (gradient accumulation); it must divide the batch."""
 
     learning_rate: float = 1e-4
     warmup_steps: int = 100
@@ -52,6 +59,7 @@ class TrainConfig:
     b2: float = 0.999
     clip_norm: float = 1.0
     train: str | tuple[str, ...] = "all"
+    accumulate: int = 1
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
 
     def validate(self) -> "TrainConfig":
@@ -62,6 +70,8 @@ class TrainConfig:
                              f"{self.total_steps}")
         if not self.clip_norm > 0:
             raise ValueError(f"clip_norm must be > 0; got {self.clip_norm}")
+        if not (isinstance(self.accumulate, int) and self.accumulate >= 1):
+            raise ValueError(f"accumulate (micro-batches per step) must be an integer >= 1; got {self.accumulate!r}")
         if isinstance(self.train, str) and self.train not in ("all", "heads"):
             raise ValueError(f"train must be 'all', 'heads' or a tuple of parameter path prefixes; got {self.train!r}")
         return self
@@ -146,10 +156,54 @@ def loss_fn(params: Any, batch: dict, config: VGGTConfig, loss_cfg: LossConfig) 
     return vggt_loss(out, batch, loss_cfg)
 
 
+def micro_batches(batch: dict, accumulate: int) -> dict:
+    """Every leaf [B, ...] -> [accumulate, B / accumulate, ...] (consecutive scenes per
+    micro-batch). A ValueError when `accumulate` does not divide B, naming the ones that do."""
+    b = batch["images"].shape[0]
+    if b % accumulate:
+        divisors = [k for k in range(1, b + 1) if b % k == 0]
+        raise ValueError(f"accumulate={accumulate} does not divide the batch of {b} scenes: use accumulate in "
+                         f"{divisors}, or a batch that is a multiple of {accumulate}")
+    return jax.tree.map(lambda x: x.reshape((accumulate, b // accumulate) + x.shape[1:]), batch)
+
+
+def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig
+                               ) -> tuple[tuple[jax.Array, dict], Any]:
+    """`jax.value_and_grad(loss_fn, has_aux=True)(params, batch, ...)` over
+    `tc.accumulate` micro-batches: a `lax.scan` holding one micro-batch's forward and
+    backward at a time, gradients summed in float32 (returned in the parameters'
+    dtypes). Each micro-batch's loss divides by the whole batch's counts (its share of the
+    whole loss, `losses.shared_denominators`), so the sums are the whole batch's
+    objective, parts and gradient."""
+    from rvggt_jax.model.forward import rvggt_forward
+
+    micro = micro_batches(batch, tc.accumulate)
+    # the whole batch's counts: its loss on outputs of the right shapes (their values do
+    # not matter and XLA drops them; the forward is only traced, for its shapes)
+    shapes = jax.eval_shape(lambda p, b: rvggt_forward(p, b["images"], config, _query_points(b)), params, batch)
+    totals = record_denominators(lambda: vggt_loss(jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),
+                                                   batch, tc.loss))
+
+    def one(acc, mb):
+        with shared_denominators(totals):
+            (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, mb, config, tc.loss)
+        return jax.tree.map(lambda a, x: a + x.astype(jnp.float32), acc, (loss, parts, grads)), None
+
+    # float32 sums of the loss, its parts (shapes: a forward trace) and the gradient (the params')
+    loss_parts = jax.eval_shape(lambda p, b: loss_fn(p, b, config, tc.loss), params,
+                                jax.tree.map(lambda x: x[0], micro))
+    zero = jax.tree.map(lambda a: jnp.zeros(jnp.shape(a), jnp.float32), (*loss_parts, params))
+    (loss, parts, grads), _ = jax.lax.scan(one, zero, micro)
+    grads = jax.tree.map(lambda g, p: g.astype(jnp.result_type(p)), grads, params)
+    return (loss, parts), grads
+
+
 def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
                     ) -> Callable[[TrainState, dict], tuple[TrainState, dict]]:
     """`step(state, batch) -> (state, metrics)`, one `jax.jit` (forward, loss, gradient,
-    clipping, AdamW). metrics: every loss part, "grad_norm" (trained leaves, before
+    clipping, AdamW); with `tc.accumulate` = K, the gradient of the batch's K
+    micro-batches, one at a time (`accumulated_value_and_grad`), one update. metrics:
+    every loss part (of the whole batch), "grad_norm" (trained leaves, before
     clipping) and "lr" (the rate this step used). `donate`: the input state's buffers are
     reused for the output (do not use a state after passing it)."""
     tc.validate()
@@ -160,7 +214,10 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
         # frozen leaves as constants: their cotangents (and any backward pass that only
         # they need, e.g. the aggregator when training heads) are never computed
         live = jax.tree.map(lambda p, lab: p if lab == TRAIN else jax.lax.stop_gradient(p), state.params, labels)
-        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(live, batch, config, tc.loss)
+        if tc.accumulate == 1:
+            (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(live, batch, config, tc.loss)
+        else:
+            (loss, parts), grads = accumulated_value_and_grad(live, batch, config, tc)
         trained = jax.tree.map(lambda g, lab: g if lab == TRAIN else jnp.zeros((), g.dtype), grads, labels)
         tx = make_optimizer(tc, state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)

@@ -101,3 +101,13 @@ def test_per_device_memory_split(report):
     device's (1/4 of the per-frame work plus the exchanged blocks; measured 0.28x)."""
     plan = report["plan"]
     assert plan["four"] < 0.4 * plan["one"], plan
+
+
+def test_ring_attention_backward_goes_around_the_ring(report):
+    # issue 25: autodiff through the per-share attention_with_lse calls (the blocked
+    # kernel's custom VJP, the lse cotangent of the fold) against autodiff of a float32
+    # reference over all keys, on 4 devices; the backward has permutes of its own
+    run = report["ring_gradient"]
+    bad = {k: e for k, e in run["errors"].items() if not e <= TOL}
+    assert not bad and len(run["errors"]) == 7, run["errors"]
+    assert run["permutes"]["gradient"] > run["permutes"]["forward"] > 0, run["permutes"]

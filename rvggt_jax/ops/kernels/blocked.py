@@ -7,6 +7,16 @@ results with it).
 Working memory does not grow with the number of keys beyond K and V themselves (and
 their head-major copies): one [rows, Nk] logits block per step, rows chosen so that the
 block fits LOGITS_BLOCK_BYTES.
+
+Reverse mode (`jax.custom_vjp`, flash attention's backward): the forward saves only q, k,
+v, the key bias, the output and the log-sum-exp of every query's logits; the backward
+walks the same query blocks, recomputes each block's softmax weights from q, k and the
+saved log-sum-exp, and accumulates dq, dk, dv and the key bias's gradient (its column
+sums of dS over heads and queries) block by block. Its memory is O(N d) plus a few
+[rows, Nk] float32 blocks, where autodiff of the loop would keep every block's weights
+(O(Nq Nk) per (batch, head) pair: ~70 GB per global layer of VGGT-1B at 24 frames).
+The cotangent of the log-sum-exp output (ring attention folds partial results with it,
+and differentiates through that fold) is taken too: d lse_i / d s_ij = P_ij.
 """
 
 from __future__ import annotations
@@ -52,8 +62,8 @@ def softmax_attend(q: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | 
     return out / total, (m + jnp.log(total))[..., 0]
 
 
-def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
-             block_bytes: int, out_dtype: Any = None, *, bits: bool = True) -> tuple[jax.Array, jax.Array]:
+def _forward(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
+             block_bytes: int, out_dtype: Any = None, bits: bool = True) -> tuple[jax.Array, jax.Array]:
     """The cache-blocked kernel. q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv], key_bias
     [B, Nk] float32 or None -> ([B, Nq, H, Dv] (float32 when in one block, else
     `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H] float32).
@@ -94,3 +104,131 @@ def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Ar
     out, lse = jax.lax.fori_loop(0, b * h * n, body, (init, zeros_from((b * h * n, rows), jnp.float32, init)))
     return (out.reshape(b, h, n * rows, dv)[:, :, :nq].transpose(0, 2, 1, 3),
             lse.reshape(b, h, n * rows)[:, :, :nq].transpose(0, 2, 1))
+
+
+def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
+                      block_bytes: int, out_dtype: Any = None, *, bits: bool = True) -> tuple[jax.Array, jax.Array]:
+    """The cache-blocked kernel, with its O(N d) backward. q [B, Nq, H, D], k [B, Nk, H, D],
+    v [B, Nk, H, Dv], key_bias [B, Nk] float32 or None -> ([B, Nq, H, Dv] (float32 when
+    in one block, else `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H]
+    float32). bits: hold 16-bit operands as `Bits16` in the loop (XLA:CPU's workaround;
+    the attention op passes False for the programs it compiles for other platforms).
+    Gradients: to q, k, v and key_bias (in their dtypes), from both outputs."""
+    out_dtype = None if out_dtype is None else jnp.dtype(out_dtype)
+    return _attention(q, k, v, key_bias, float(scale), int(block_bytes), out_dtype, bool(bits))
+
+
+_attention = jax.custom_vjp(_forward, nondiff_argnums=(4, 5, 6, 7))
+
+
+def _attention_fwd(q, k, v, key_bias, scale, block_bytes, out_dtype, bits):
+    out, lse = _forward(q, k, v, key_bias, scale, block_bytes, out_dtype, bits)
+    return (out, lse), (q, k, v, key_bias, out, lse)
+
+
+def block_grads(qs: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | None, o: jax.Array, do: jax.Array,
+                lse: jax.Array, dlse: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The backward of `softmax_attend` for one block of queries (any leading dims):
+    qs [..., n, D] (pre-scaled, as the forward took it), kt [..., D, Nk], v [..., Nk, Dv],
+    bias [..., 1, Nk] float32 or None, o / do the output and its cotangent [..., n, Dv],
+    lse / dlse the log-sum-exp and its cotangent [..., n] float32 ->
+    (d qs [..., n, D], dk [..., Nk, D], dv [..., Nk, Dv], dS [..., n, Nk]), float32.
+
+        P = exp(s - lse)                      (the forward's weights, recomputed)
+        dS = P * (dO v^T - rowsum(dO * O) + dlse)
+
+    the last term being the log-sum-exp's own cotangent (d lse_i / d s_ij = P_ij). The
+    weights and dS enter the matmuls in the operands' dtype (as the forward's weights
+    enter its value product), every product accumulates in float32."""
+    f32 = jnp.float32
+    logits = jnp.matmul(qs, kt, preferred_element_type=f32)
+    if bias is not None:
+        logits = logits + bias
+    p = jnp.exp(logits - lse[..., None])
+    do_v = do.astype(v.dtype)
+    dp = jnp.einsum("...qe,...ke->...qk", do_v, v, preferred_element_type=f32)
+    delta = jnp.sum(do.astype(f32) * o.astype(f32), axis=-1) - dlse
+    ds = p * (dp - delta[..., None])
+    dv = jnp.einsum("...qk,...qe->...ke", p.astype(v.dtype), do_v, preferred_element_type=f32)
+    dsk = ds.astype(kt.dtype)
+    dqs = jnp.einsum("...qk,...dk->...qd", dsk, kt, preferred_element_type=f32)
+    dk = jnp.einsum("...qk,...qd->...kd", dsk, qs, preferred_element_type=f32)
+    return dqs, dk, dv, ds
+
+
+def _attention_bwd(scale, block_bytes, out_dtype, bits, res, cts):
+    """dq, dk, dv, d key_bias from the cotangents (d out, d lse): the forward's query
+    blocks again, one (batch, head) pair at a time; dk, dv and the bias gradient of a pair
+    accumulate in float32 over its query blocks (O(N d), never a [Nq, Nk] matrix beyond
+    one block's)."""
+    q, k, v, key_bias, out, lse = res
+    dout, dlse = cts
+    f32 = jnp.float32
+    b, nq, h, d = q.shape
+    nk, dv_ = k.shape[1], v.shape[-1]
+    qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)  # [B, H, Nq, D], as the forward's
+    kt = k.transpose(0, 2, 3, 1)  # [B, H, D, Nk]
+    vt = v.transpose(0, 2, 1, 3)  # [B, H, Nk, Dv]
+    ot, dot = out.transpose(0, 2, 1, 3), dout.transpose(0, 2, 1, 3)  # [B, H, Nq, Dv]
+    lt, dlt = lse.transpose(0, 2, 1).astype(f32), dlse.transpose(0, 2, 1).astype(f32)  # [B, H, Nq]
+    bias = None if key_bias is None else key_bias[:, None, None, :]  # [B, 1, 1, Nk]
+
+    def finish(dqs, dk, dv, dbias):  # [B, H, ...] float32 -> the operands' layouts and dtypes
+        dq = (dqs * jnp.asarray(scale, f32)).astype(q.dtype).transpose(0, 2, 1, 3)
+        return dq, dk.astype(k.dtype).transpose(0, 2, 1, 3), dv.astype(v.dtype).transpose(0, 2, 1, 3), dbias
+
+    if b * h * nq * nk * 4 <= block_bytes:  # the forward's single block
+        dqs, dk, dv, ds = block_grads(qt, kt, vt, bias, ot, dot, lt, dlt)
+        return finish(dqs, dk, dv, None if bias is None else ds.sum(axis=(1, 2)))
+
+    n, rows = query_blocks(nq, nk, 4, block_bytes)
+
+    def blocks(t, fill=0.0):  # [B, H, Nq, ...] -> [B * H * n, rows, ...] (padded rows: fill)
+        widths = ((0, 0), (0, 0), (0, n * rows - nq)) + ((0, 0),) * (t.ndim - 3)
+        return jnp.pad(t, widths, constant_values=fill).reshape((b * h * n, rows) + t.shape[3:])
+
+    # padded rows: zero cotangents and an infinite log-sum-exp (weights exactly 0), so
+    # they add nothing to dk, dv or the bias gradient
+    qb, ob, dob = blocks(qt), blocks(ot), blocks(dot)
+    lb, dlb = blocks(lt, jnp.inf), blocks(dlt)
+    kp, vp = kt.reshape(b * h, d, nk), vt.reshape(b * h, nk, dv_)
+    qb, kp, vp, ob, dob = (Bits16.of(t) if bits and is_16bit_float(t) else t for t in (qb, kp, vp, ob, dob))
+
+    def index(t, i):
+        return read_buffer(t, lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)
+
+    def pair_body(pair, acc):
+        dq_all, dk_all, dv_all, dbias_all = acc
+        kb, vb = index(kp, pair), index(vp, pair)
+        bb = None if bias is None else dynamic_index(bias[:, 0], pair // h)
+
+        def block_body(j, inner):
+            dq_all, dk, dv, dbias = inner
+            i = pair * n + j
+            dqs, dki, dvi, ds = block_grads(index(qb, i), kb, vb, bb, index(ob, i), index(dob, i),
+                                            index(lb, i), index(dlb, i))
+            dq = (dqs * jnp.asarray(scale, f32)).astype(q.dtype)
+            dbias = None if dbias is None else dbias + ds.sum(axis=0)
+            return jax.lax.dynamic_update_index_in_dim(dq_all, dq, i, 0), dk + dki, dv + dvi, dbias
+
+        zk = zeros_from((nk, d), f32, kb)
+        inner = (dq_all, zk, zeros_from((nk, dv_), f32, zk), None if bias is None else zeros_from((nk,), f32, zk))
+        dq_all, dk, dv, dbias = jax.lax.fori_loop(0, n, block_body, inner)
+        dk_all = jax.lax.dynamic_update_index_in_dim(dk_all, dk.astype(k.dtype), pair, 0)
+        dv_all = jax.lax.dynamic_update_index_in_dim(dv_all, dv.astype(v.dtype), pair, 0)
+        if dbias is not None:  # heads of one batch element share its bias: add theirs up
+            row = pair // h
+            dbias_all = jax.lax.dynamic_update_index_in_dim(
+                dbias_all, dynamic_index(dbias_all, row) + dbias, row, 0)
+        return dq_all, dk_all, dv_all, dbias_all
+
+    # (buffers made from the cotangent: constant ones would live from the program start)
+    init = (zeros_from((b * h * n, rows, d), q.dtype, dout), zeros_from((b * h, nk, d), k.dtype, dout),
+            zeros_from((b * h, nk, dv_), v.dtype, dout), None if bias is None else zeros_from((b, nk), f32, dout))
+    dq, dk, dv, dbias = jax.lax.fori_loop(0, b * h, pair_body, init)
+    dq = dq.reshape(b, h, n * rows, d)[:, :, :nq].transpose(0, 2, 1, 3)
+    return (dq, dk.reshape(b, h, nk, d).transpose(0, 2, 1, 3), dv.reshape(b, h, nk, dv_).transpose(0, 2, 1, 3),
+            dbias)
+
+
+_attention.defvjp(_attention_fwd, _attention_bwd)
