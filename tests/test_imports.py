@@ -197,7 +197,7 @@ IMPORT_RULES = {
     "config": {"compression.config", "compression.presets", "ops.kernels.names"},
     "geometry": set(),
     "ops": set(),
-    "model": {"config", "ops", "compression", "weights.rules", "weights.shapes"},
+    "model": {"config", "ops", "compression", "weights.rules", "weights.shapes", "weights.layout"},
     "compression": {"config", "ops", "model"},
     "parallel": {"config", "ops", "model"},
     "weights": {"config", "model.params"},

@@ -27,7 +27,7 @@ from rvggt_jax.model.heads.dpt import dense_heads
 from rvggt_jax.model.heads.track import track_head
 from rvggt_jax.model.input_range import InputRangeWarning, warn_if_out_of_range  # noqa: F401 (re-exported)
 from rvggt_jax.model.layers import Params
-from rvggt_jax.weights.converter import expected_param_paths, flatten_params
+from rvggt_jax.weights.layout import expected_param_paths, flatten_params
 
 
 class InputError(ValueError):

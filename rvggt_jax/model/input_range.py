@@ -88,7 +88,10 @@ def warn_if_out_of_range(images: Any) -> None:
         _in_program(images)
         return
     if isinstance(images, jax.Array):
-        lo, hi, nans = jax.device_get(_stats(jnp, images.astype(jnp.float32)))
+        # (eagerly even when a traced function closes over the array: under a trace, jnp
+        # on a concrete array would be staged into the program)
+        with jax.ensure_compile_time_eval():
+            lo, hi, nans = jax.device_get(_stats(jnp, images.astype(jnp.float32)))
     else:
         lo, hi, nans = _stats(np, np.asarray(images, np.float32))
     msg = range_message(float(lo), float(hi), int(nans))

@@ -19,6 +19,7 @@ from rvggt_jax.config import VGGTConfig
 from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError, unreadable_message
 from rvggt_jax.weights.rules import Path as TreePath
 from rvggt_jax.weights.rules import apply_rule, converted_shapes, find_rule
+from rvggt_jax.weights.layout import expected_param_paths, flatten_params  # noqa: F401 (re-exported)
 from rvggt_jax.weights.shapes import upstream_state_dict_shapes
 from rvggt_jax.model.params import Params
 
@@ -186,17 +187,6 @@ def _insert(tree: dict, path: TreePath, leaf: Any) -> None:
     node[path[-1]] = leaf
 
 
-def flatten_params(params: Mapping[str, Any], prefix: TreePath = ()) -> dict[TreePath, Any]:
-    """Nested dicts -> {path tuple: leaf}."""
-    flat: dict[TreePath, Any] = {}
-    for k, v in params.items():
-        if isinstance(v, Mapping):
-            flat.update(flatten_params(v, prefix + (k,)))
-        else:
-            flat[prefix + (k,)] = v
-    return flat
-
-
 def unflatten_params(flat: Mapping[TreePath, Any]) -> Params:
     tree: Params = {}
     for path, leaf in flat.items():
@@ -211,20 +201,6 @@ def expected_param_shapes(config: VGGTConfig, *, skip_track: bool = False) -> Pa
 
     flat = expected_param_paths(config, skip_track=skip_track)
     return unflatten_params({p: jax.ShapeDtypeStruct(s, PARAM_DTYPE) for p, s in flat.items()})
-
-
-def expected_param_paths(config: VGGTConfig, *, skip_track: bool = False) -> dict[TreePath, tuple[int, ...]]:
-    """{our path tuple: converted shape} for `config`, derived through the rule table."""
-    flat: dict[TreePath, tuple[int, ...]] = {}
-    for key, shape in upstream_state_dict_shapes(config, skip_track=skip_track).items():
-        rule = find_rule(key)
-        if rule is None:
-            raise ValueError(f"no conversion rule for upstream key {key}")
-        for path, s in converted_shapes(rule.kind, key, shape):
-            if path in flat:
-                raise ValueError(f"conversion rules write {'.'.join(path)} twice")
-            flat[path] = s
-    return flat
 
 
 # ---- conversion ------------------------------------------------------------------------------

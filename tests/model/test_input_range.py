@@ -62,16 +62,18 @@ def test_empty_images_are_refused_by_the_shape_check_not_the_range_check(tiny):
 
 def test_under_jit_the_program_warns_and_compiles_once(tiny):
     params, config = tiny
-    fwd = jax.jit(rvggt_forward)
+    # a function of its own: jax.jit(rvggt_forward) would share its cache with the other
+    # tests' jax.jit(rvggt_forward) in this process
+    fwd = jax.jit(lambda p, x, config: rvggt_forward(p, x, config), static_argnames="config")
     with pytest.warns(InputRangeWarning, match=r"divide by 255"):
-        jax.block_until_ready(fwd(params, _images("0..255"), config))
+        jax.block_until_ready(fwd(params, _images("0..255"), config=config))
         jax.effects_barrier()  # the host callback has run
     with pytest.warns(InputRangeWarning, match=r"2 NaN value"):
-        jax.block_until_ready(fwd(params, _images("nan"), config))
+        jax.block_until_ready(fwd(params, _images("nan"), config=config))
         jax.effects_barrier()
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # valid input: silent
-        out = fwd(params, _images("ok"), config)
+        out = fwd(params, _images("ok"), config=config)
         jax.block_until_ready(out)
         jax.effects_barrier()
     assert np.isfinite(np.asarray(out["depth"])).all()
