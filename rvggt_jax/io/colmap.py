@@ -45,6 +45,19 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
+def _model_folder(folder: PathLike, names: Sequence[str], extrinsics: np.ndarray, intrinsics: np.ndarray,
+                  sizes: Sequence[tuple[int, int]]) -> tuple[Path, np.ndarray, np.ndarray]:
+    """The checks both model writers make, then their folder (created): -> (folder,
+    extrinsics [S, 3, 4], intrinsics [S, 3, 3] as `check_cameras` returns them)."""
+    e, k = check_cameras(names, extrinsics, intrinsics, sizes)
+    for name in names:
+        if any(ch.isspace() for ch in name):
+            raise ValueError(f"COLMAP image names cannot contain spaces: {name!r}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder, e, k
+
+
 def write_colmap_text(folder: PathLike, names: Sequence[str], extrinsics: np.ndarray, intrinsics: np.ndarray,
                       sizes: Sequence[tuple[int, int]], points: np.ndarray | None = None,
                       colors: np.ndarray | None = None) -> None:
@@ -56,12 +69,7 @@ def write_colmap_text(folder: PathLike, names: Sequence[str], extrinsics: np.nda
     and image ids are 1..S (camera i belongs to image i); points have ids 1..N, error
     0 and no track.
     """
-    e, k = check_cameras(names, extrinsics, intrinsics, sizes)
-    for name in names:
-        if any(ch.isspace() for ch in name):
-            raise ValueError(f"COLMAP image names cannot contain spaces: {name!r}")
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder, e, k = _model_folder(folder, names, extrinsics, intrinsics, sizes)
     s = len(names)
 
     lines = ["# Camera list with one line of data per camera:",
@@ -158,12 +166,7 @@ def write_colmap_binary(folder: PathLike, names: Sequence[str], extrinsics: np.n
     uint64, params float64), images (id uint32, qvec, tvec float64, camera id uint32,
     name NUL-terminated, 0 2D points uint64), points (id uint64, xyz float64, rgb uint8,
     error float64, track length uint64 = 0)."""
-    e, k = check_cameras(names, extrinsics, intrinsics, sizes)
-    for name in names:
-        if any(ch.isspace() for ch in name):
-            raise ValueError(f"COLMAP image names cannot contain spaces: {name!r}")
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder, e, k = _model_folder(folder, names, extrinsics, intrinsics, sizes)
     s = len(names)
     with open(folder / "cameras.bin", "wb") as f:
         f.write(struct.pack("<Q", s))
