@@ -219,10 +219,12 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
 
             params, track_params = split_track_head(params, config, weights)
         stage(1)
-        # the images go in as uint8 (exact, `network_images`): plan and compile for that
-        report, mesh = _check_memory(config, (s, h, w), options, network_images(images).dtype)
+        # the images go in as uint8 (exact, `network_images`, made once here): plan,
+        # compile and run for that
+        net = network_images(images)
+        report, mesh = _check_memory(config, (s, h, w), options, net.dtype)
         stage(2)
-        out = run_model(params, images, config, weights, compiled=report.compiled, mesh=mesh)
+        out = run_model(params, net, config, weights, compiled=report.compiled, mesh=mesh)
         stage(3)
         recon = _decode(out, images, chosen, infos, options, masks)
         stage(4)
