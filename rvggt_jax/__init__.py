@@ -15,6 +15,7 @@ _LAZY = {
     "as_query_points": "rvggt_jax.model.forward",
     "InputError": "rvggt_jax.model.forward",
     "InputRangeWarning": "rvggt_jax.model.input_range",
+    "warn_if_out_of_range": "rvggt_jax.model.input_range",
     "load_pretrained": "rvggt_jax.weights.pretrained",
     "load_images": "rvggt_jax.io.images",
     "cost_report": "rvggt_jax.planning.cost",

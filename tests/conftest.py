@@ -101,3 +101,31 @@ def pytest_sessionfinish(session, exitstatus):
         import shutil
 
         shutil.rmtree(os.environ["RVGGT_TEST_XLA_CACHE"], ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------
+# RVGGT_TEST_COMPILE_LOG=path.jsonl: what each test compiles (tests/helpers/compile_log.py)
+# ---------------------------------------------------------------------------------------
+
+if os.environ.get("RVGGT_TEST_COMPILE_LOG"):
+    from tests.helpers.compile_log import install as _install_compile_log
+
+    _COMPILE_LOG = _install_compile_log(os.environ["RVGGT_TEST_COMPILE_LOG"])
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_setup(item):
+        _COMPILE_LOG.start(item.nodeid, "setup")
+        yield
+        _COMPILE_LOG.stop()
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_call(item):
+        _COMPILE_LOG.start(item.nodeid, "call")
+        yield
+        _COMPILE_LOG.stop()
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_teardown(item):
+        _COMPILE_LOG.start(item.nodeid, "teardown")
+        yield
+        _COMPILE_LOG.stop()

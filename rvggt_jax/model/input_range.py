@@ -6,6 +6,13 @@ values tell: concrete arrays (NumPy, JAX arrays outside `jax.jit`) are checked a
 under `jax.jit` the check is part of the compiled program (three reductions and a
 `jax.debug.callback` that warns on the host), so it costs no second compile and no host
 sync in the caller.
+
+Except with JAX's persistent compilation cache on (`jax_compilation_cache_dir` set, as
+`rvggt` sets it): JAX never writes a program holding a host callback to that cache (the
+callback's address is baked into it), so the check would silently cost a full compile in
+every new process, minutes for VGGT-1B on a GPU. There the traced program goes without
+it; check concrete images before the call (`warn_if_out_of_range(images)`), as the
+pipeline does.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["InputRangeWarning", "warn_if_out_of_range", "range_message"]
+__all__ = ["InputRangeWarning", "warn_if_out_of_range", "range_message", "program_check_enabled"]
 
 LOW, HIGH = 0.0, 1.0
 
@@ -62,11 +69,20 @@ def _has_client(platform: str) -> bool:
         return False
 
 
+def program_check_enabled() -> bool:
+    """Whether a traced forward holds the range check: not when JAX's persistent
+    compilation cache is on (it does not store programs with host callbacks)."""
+    return not (jax.config.jax_enable_compilation_cache and jax.config.jax_compilation_cache_dir)
+
+
 def _in_program(images: jax.Array) -> None:
-    """The check as part of the traced program. A host callback can only be lowered for a
+    """The check as part of the traced program (see `program_check_enabled`). A host callback can only be lowered for a
     platform this process has a client for; a program lowered for another one (a
     deviceless compile for a GPU or TPU, `rvggt plan`) goes without the check, chosen per
     platform at lowering time (`lax.platform_dependent`), so it still lowers."""
+    if not program_check_enabled():
+        return
+
     def check(x):
         jax.debug.callback(_warn, *_stats(jnp, x.astype(jnp.float32)))
 
@@ -81,7 +97,7 @@ def warn_if_out_of_range(images: Any) -> None:
     """Warn (`InputRangeWarning`) when float `images` (any shape) hold values outside
     [0, 1] or NaN. Concrete arrays are checked now; a tracer (under `jax.jit`, `grad`,
     `shard_map`) gets the check inside its program, reported by `jax.debug.callback` when
-    the program runs. Integer images are not checked (their scaling is the caller's)."""
+    the program runs, unless the persistent compilation cache is on (`program_check_enabled`). Integer images are not checked (their scaling is the caller's)."""
     if not jnp.issubdtype(jnp.result_type(images), jnp.floating) or 0 in np.shape(images):
         return  # (an empty array is the shape check's to refuse)
     if isinstance(images, jax.core.Tracer):

@@ -1,6 +1,9 @@
 """Images outside [0, 1] or with NaN: an `InputRangeWarning` (a float image is legal, so
 only its values tell), checked at once for concrete arrays and from inside the compiled
-program under jit (no second compile, no host sync in the caller)."""
+program under jit (no second compile, no host sync in the caller), except with JAX's
+persistent compilation cache on: a host callback would keep the program out of it."""
+
+import contextlib
 
 import warnings
 
@@ -60,8 +63,25 @@ def test_empty_images_are_refused_by_the_shape_check_not_the_range_check(tiny):
         check_inputs(params, np.zeros((1, 0, 3, 14, 14), np.float32), config)
 
 
+@contextlib.contextmanager
+def _persistent_cache(directory):
+    """JAX's persistent compilation cache at `directory` (None: off) for the block (the
+    suite runs with it on: tests/conftest.py)."""
+    saved = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", directory)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_compilation_cache_dir", saved)
+
+
 def test_under_jit_the_program_warns_and_compiles_once(tiny):
     params, config = tiny
+    with _persistent_cache(None):
+        _warns_under_jit(params, config)
+
+
+def _warns_under_jit(params, config):
     # a function of its own: jax.jit(rvggt_forward) would share its cache with the other
     # tests' jax.jit(rvggt_forward) in this process
     fwd = jax.jit(lambda p, x, config: rvggt_forward(p, x, config), static_argnames="config")
@@ -78,3 +98,17 @@ def test_under_jit_the_program_warns_and_compiles_once(tiny):
         jax.effects_barrier()
     assert np.isfinite(np.asarray(out["depth"])).all()
     assert fwd._cache_size() == 1  # the values never reach the trace: one program for all three
+
+
+def test_with_the_persistent_cache_on_the_program_holds_no_callback(tiny, tmp_path):
+    """JAX does not store programs with host callbacks in its persistent cache: with the
+    cache on (as `rvggt` runs) the traced program leaves the check out, so that it is
+    stored; with it off the check is in."""
+    params, config = tiny
+    fwd = jax.jit(lambda p, x: rvggt_forward(p, x, config))
+    with _persistent_cache(None):
+        assert rvggt_jax.model.input_range.program_check_enabled()
+        assert "callback" in fwd.lower(params, _images("ok")).as_text()
+    with _persistent_cache(str(tmp_path)):
+        assert not rvggt_jax.model.input_range.program_check_enabled()
+        assert "callback" not in jax.jit(lambda p, x: rvggt_forward(p, x, config)).lower(params, _images("ok")).as_text()
