@@ -87,7 +87,7 @@ def main(argv=None):
         u64 /= np.linalg.norm(u64, axis=-1, keepdims=True)
         differ = np.flatnonzero(ours_dst != theirs_dst)
         order_sorted = bool(np.all(np.diff(a_pos) > 0) and np.all(np.diff(b_pos) > 0))
-        print(f"layer {i:2d}: outputs differ (>1e-4 rel) at {bad.sum()} tokens in {per_frame.sum()} frames "
+        print(f"layer {i:2d}: max rel diff {d.max():.1e}; outputs differ (>1e-4 rel) at {bad.sum()} tokens in {per_frame.sum()} frames "
               f"({bad[part.is_dst & prot].sum()} of them protected dst, {(bad & ~(part.is_dst & prot)).sum()} others); "
               f"dst choices differ for {differ.size} of {a_pos.size} src; FastVGGT's src/dst order ascending: {order_sorted}",
               flush=True)

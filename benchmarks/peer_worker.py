@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import types
@@ -119,6 +120,41 @@ def _similarity_f32(a, b_transposed, chunk_size: int):
     return node_max, node_idx
 
 
+def _diagnostic_keep_dst_rows(att_mod, torch):
+    """Diagnosis only (env PEER_DIAG_DST_ROW_FOR_PROTECTED=1), not a CPU change: FastVGGT's
+    unmerge writes the protected copies last, so a protected dst token takes its own
+    unmerged query's output; this puts back its dst (group) row, as ours does, to show
+    that this is the whole difference. The dst order is FastVGGT's own (the same argsort
+    of the same idx_buffer_seq, rebuilt from the sets: -1 = dst, 0 = src)."""
+    inner = att_mod.token_merge_bipartite2d
+
+    def tm(metric, w, h, sx, sy, r, no_rand=False, generator=None, enable_protection=False):
+        merge, unmerge = inner(metric, w, h, sx, sy, r, no_rand, generator, enable_protection)
+        N = metric.shape[1]
+        n_prot = int(N * 0.1)
+        prot = torch.arange(0, N, max(1, N // n_prot))[:n_prot]
+
+        def unmerge2(x):
+            out = unmerge(x)
+            dst_mask = _DIAG["is_dst"]
+            seq = torch.where(torch.from_numpy(dst_mask), -1, 0).to(torch.int64)
+            order = seq.reshape(1, -1, 1).argsort(dim=1)[0, :, 0]
+            b_idx = order[: int(dst_mask.sum())]
+            rank = torch.full((N,), -1, dtype=torch.long)
+            rank[b_idx] = torch.arange(b_idx.numel())
+            unm_len = x.shape[1] - b_idx.numel() - n_prot
+            pd = prot[rank[prot] >= 0]
+            out[:, pd] = x[:, unm_len + rank[pd]]
+            return out
+
+        return merge, unmerge2
+
+    att_mod.token_merge_bipartite2d = tm
+
+
+_DIAG: dict = {}
+
+
 def build_fastvggt(config, src: Path, ckpt: Path, dst_draw: np.ndarray | None, w: int, h: int, trace: dict):
     import torch
 
@@ -161,6 +197,8 @@ def build_fastvggt(config, src: Path, ckpt: Path, dst_draw: np.ndarray | None, w
         return orig_tm(metric, *a, **k)
 
     att_mod.token_merge_bipartite2d = tm
+    if os.environ.get("PEER_DIAG_DST_ROW_FOR_PROTECTED") == "1":
+        _diagnostic_keep_dst_rows(att_mod, torch)
     orig_call = rope_mod.PositionGetter.__call__
 
     def pos_call(self, batch_size, height, width, device):
@@ -229,6 +267,18 @@ def main(argv=None):
         model.eval()
     else:
         draw = np.load(args.dst_draw) if args.dst_draw else None
+        if os.environ.get("PEER_DIAG_DST_ROW_FOR_PROTECTED") == "1":  # the dst set, from the draw
+            S_, hh, ww = images.shape[1], images.shape[-2] // config.patch_size, images.shape[-1] // config.patch_size
+            P_ = 5 + hh * ww
+            is_dst = np.zeros(S_ * P_, bool)
+            is_dst[:P_] = True
+            for f in range(1, S_):
+                is_dst[f * P_: f * P_ + 5] = True
+                k = draw[f - 1]
+                rows = (np.arange(hh // 2)[:, None] * 2 + k // 2)
+                cols = (np.arange(ww // 2)[None, :] * 2 + k % 2)
+                is_dst[f * P_ + 5 + (rows * ww + cols).ravel()] = True
+            _DIAG["is_dst"] = is_dst
         h, w = images.shape[-2] // config.patch_size, images.shape[-1] // config.patch_size
         model, box = build_fastvggt(config, Path(args.src), ckpt, draw, w, h, trace)
     print(json.dumps({"ready": args.kind, "torch": torch.__version__, "threads": torch.get_num_threads(),
