@@ -12,9 +12,12 @@ import sys
 from functools import partial
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from rvggt_jax.config import VGGTConfig
+if TYPE_CHECKING:  # annotations only: peer_worker.py imports this file without jax
+    from rvggt_jax.config import VGGTConfig
 
 
 def import_upstream(vggt_src: str | Path):

@@ -1,0 +1,204 @@
+"""Our presets against the PyTorch peers, on the same checkpoint and images, alternating.
+
+    python benchmarks/bench_peers.py --torch-python /tmp/torchvenv/bin/python \\
+        --upstream-src /tmp/peers/vggt --fastvggt-src /tmp/peers/fastvggt --frames 16 64
+
+Pairs (ours vs peer; a pair runs when its peer's source folder is given):
+
+  dense     vs upstream VGGT           (--upstream-src: the folder holding vggt/)
+  fastvggt  vs FastVGGT's own code     (--fastvggt-src: the folder holding merging/ and vggt/)
+
+(The RegimeVGGT authors' code, the third peer of issue 26, is not wired in: no snapshot of
+Brandon-Z-226/RegimeVGGT could be had on this machine.)
+
+Layout: the benchmarks' speed layout (`bench_memory.small_layout`: 24 layers of width 64,
+one head of 64, DINO depth 1, DPT 16 -> 8/16/32/32), random weights drawn by upstream's
+modules (`upstream.build_upstream`), float32, frames of 168 x 224. The checkpoint is
+written by the upstream worker and read by `rvggt_jax.load_pretrained`.
+
+Each peer runs in its own subprocess (`peer_worker.py`) under `--torch-python` (a Python
+with torch; torch is never a dependency of rvggt-jax) with torch.set_num_threads(2); ours
+runs here, jitted, on XLA:CPU with its default threads (the 2 cores of this machine, as
+bench_dense.py / bench_regime.py run it). Each peer runs as written except for the
+changes it needs to run on CPU in float32: `peer_worker.CPU_CHANGES` (printed).
+
+FastVGGT's configuration on our side: the `fastvggt` preset with duplicate_protected=True
+(FastVGGT's protected dst tokens appear twice among the keys/values, as its code does) and
+the point head off (FastVGGT's VGGT() default). Its dst draw is ours (dst_cells, seed 33)
+so that both pick the same dst patches.
+
+Per frame count: one warm-up run of each side (ours: compile + run; outputs compared),
+then `--repeats` rounds; in each round every pair runs peer and ours back to back, the
+order alternating between rounds. Reported: median times, peer / ours, parity (max |diff|
+/ max |peer| per output; dense must be within --tol).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import rvggt_jax  # noqa: E402
+from benchmarks.bench_memory import small_layout  # noqa: E402
+from rvggt_jax.compression.partition import dst_cells  # noqa: E402
+
+KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
+WORKER = ROOT / "benchmarks" / "peer_worker.py"
+
+
+class Peer:
+    """A peer_worker.py subprocess."""
+
+    def __init__(self, torch_python: str, kind: str, src: str, ckpt: Path, images: Path, threads: int,
+                 dst_draw: Path | None = None, trace_layer: int = -1):
+        cmd = [torch_python, str(WORKER), "--kind", kind, "--src", src, "--ckpt", str(ckpt), "--images", str(images),
+               "--threads", str(threads), "--trace-layer", str(trace_layer)]
+        if dst_draw is not None:
+            cmd += ["--dst-draw", str(dst_draw)]
+        self.kind = kind
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+        self.info = self._read()
+
+    def _read(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise SystemExit(f"peer {self.kind} exited (code {self.proc.wait()})")
+        return json.loads(line)
+
+    def run(self, save: Path | None = None) -> float:
+        self.proc.stdin.write(json.dumps({"cmd": "run", "save": str(save) if save else None}) + "\n")
+        self.proc.stdin.flush()
+        return self._read()["seconds"]
+
+    def close(self):
+        self.proc.stdin.write(json.dumps({"cmd": "quit"}) + "\n")
+        self.proc.stdin.flush()
+        self.proc.wait()
+
+
+def dst_draw(frames: int, h: int, w: int, seed: int = 33) -> np.ndarray:
+    """Our per-cell dst choice as FastVGGT's randint draw [S-1, h/2, w/2]: k = dy*2 + dx."""
+    out = []
+    for f in range(1, frames):
+        p = dst_cells(h, w, f, seed)
+        out.append((((p // w) % 2) * 2 + (p % w) % 2).reshape(h // 2, w // 2))
+    return np.stack(out).astype(np.int64)
+
+
+def parity(ours: dict, peer: dict) -> dict:
+    return {k: float(np.abs(np.asarray(ours[k]) - peer[k]).max() / np.abs(peer[k]).max())
+            for k in KEYS if k in peer and k in ours}
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--torch-python", required=True, help="a Python with torch, numpy, safetensors, einops")
+    ap.add_argument("--upstream-src", help="folder holding the upstream vggt/ package (also writes the checkpoint)")
+    ap.add_argument("--fastvggt-src", help="folder holding FastVGGT's merging/ and vggt/")
+    ap.add_argument("--peers", nargs="+", default=["upstream", "fastvggt"], choices=("upstream", "fastvggt"))
+    ap.add_argument("--frames", type=int, nargs="+", default=[16])
+    ap.add_argument("--height", type=int, default=168)
+    ap.add_argument("--width", type=int, default=224)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    ap.add_argument("--tol", type=float, default=1e-4, help="dense parity bound (max rel err)")
+    ap.add_argument("--keep", help="folder to keep the checkpoint, images and outputs in")
+    args = ap.parse_args(argv)
+    if not args.upstream_src:
+        raise SystemExit("--upstream-src is needed (it writes the checkpoint every side loads)")
+    rvggt_jax.prefer_threaded_convolutions()
+
+    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-peers-"))
+    work.mkdir(parents=True, exist_ok=True)
+    config = small_layout().validate()
+    config.to_json(work / "config.json")
+    subprocess.run([args.torch_python, str(WORKER), "--kind", "upstream", "--src", args.upstream_src,
+                    "--ckpt", str(work), "--build", "--threads", str(args.threads)], check=True, cwd=ROOT)
+    params, config = rvggt_jax.load_pretrained(work)
+    h, w = args.height // config.patch_size, args.width // config.patch_size
+
+    ours_cfg = {"dense": config}
+    ours_params = {"dense": params}
+    fast = dataclasses.replace(config, enable_point=False).with_compression("fastvggt", duplicate_protected=True)
+    ours_cfg["fastvggt"] = fast
+    ours_params["fastvggt"] = {k: v for k, v in params.items() if k != "point_head"}
+    pairs = [(o, p) for o, p in (("dense", "upstream"), ("fastvggt", "fastvggt"))
+             if p in args.peers and (p == "upstream" or args.fastvggt_src)]
+    srcs = {"upstream": args.upstream_src, "fastvggt": args.fastvggt_src}
+
+    print(f"layout: depth {config.depth}, width {config.embed_dim}, head dim {config.head_dim}, "
+          f"DINO depth {config.dino.depth}, DPT {config.dpt_head.features}; float32; jax {jax.__version__} "
+          f"({jax.devices()[0].platform}), torch threads {args.threads}", flush=True)
+    rows = []
+    for S in args.frames:
+        rng = np.random.default_rng(0)
+        images = rng.random((1, S, 3, args.height, args.width), dtype=np.float32)
+        np.save(work / f"images_{S}.npy", images)
+        np.save(work / f"dst_{S}.npy", dst_draw(S, h, w))
+        images_j = jax.device_put(images)
+        peers, fns = {}, {}
+        for ours, peer in pairs:
+            peers[peer] = Peer(args.torch_python, peer, srcs[peer], work, work / f"images_{S}.npy", args.threads,
+                               work / f"dst_{S}.npy" if peer == "fastvggt" else None)
+            if S == args.frames[0]:
+                print(f"{peer}: torch {peers[peer].info['torch']}, {peers[peer].info['threads']} threads; "
+                      f"CPU changes: " + " | ".join(peers[peer].info["cpu_changes"]), flush=True)
+            fn = jax.jit(rvggt_jax.rvggt_forward)
+            fns[ours] = (lambda f=fn, p=ours_params[ours], c=ours_cfg[ours]: jax.block_until_ready(f(p, images_j, c)))
+        times = {(o, p): {"ours": [], "peer": []} for o, p in pairs}
+        errs = {}
+        for ours, peer in pairs:  # warm-up: compile, outputs compared
+            t = time.perf_counter()
+            out = fns[ours]()
+            compile_s = time.perf_counter() - t
+            peers[peer].run(work / f"{peer}_{S}.npz")
+            ref = dict(np.load(work / f"{peer}_{S}.npz"))
+            errs[(ours, peer)] = parity(out, ref)
+            print(f"S={S} {ours} compile + run {compile_s:.1f} s; vs {peer}: "
+                  + ", ".join(f"{k} {v:.1e}" for k, v in errs[(ours, peer)].items()), flush=True)
+        for r in range(args.repeats):
+            for ours, peer in pairs:
+                order = ("peer", "ours") if r % 2 == 0 else ("ours", "peer")
+                for side in order:
+                    t = time.perf_counter() if side == "ours" else None
+                    if side == "ours":
+                        fns[ours]()
+                        dt = time.perf_counter() - t
+                    else:
+                        dt = peers[peer].run()
+                    times[(ours, peer)][side].append(dt)
+                tt = times[(ours, peer)]
+                print(f"S={S} round {r}: {peer} {tt['peer'][-1]:.2f} s, ours {ours} {tt['ours'][-1]:.2f} s", flush=True)
+        for p in peers.values():
+            p.close()
+        for (ours, peer), tt in times.items():
+            mo, mp = statistics.median(tt["ours"]), statistics.median(tt["peer"])
+            e = errs[(ours, peer)]
+            ok = "" if ours != "dense" else (" (within tol)" if max(e.values()) <= args.tol else " (OVER TOL)")
+            rows.append(dict(S=S, ours=ours, peer=peer, t_ours=mo, t_peer=mp, ratio=mp / mo,
+                             pairs=[p / o for p, o in zip(tt["peer"], tt["ours"])], err=max(e.values()), ok=ok,
+                             errs=e))
+    print("\n| frames | ours | peer | peer median s | ours median s | peer / ours (median) | per round | "
+          "max rel diff of outputs |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        print(f"| {r['S']} | `{r['ours']}` | {r['peer']} | {r['t_peer']:.2f} | {r['t_ours']:.2f} | "
+              f"**{r['ratio']:.2f}** | {', '.join(f'{x:.2f}' for x in r['pairs'])} | {r['err']:.1e}{r['ok']} |")
+    (work / "rows.json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
