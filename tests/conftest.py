@@ -112,20 +112,15 @@ if os.environ.get("RVGGT_TEST_COMPILE_LOG"):
 
     _COMPILE_LOG = _install_compile_log(os.environ["RVGGT_TEST_COMPILE_LOG"])
 
-    @pytest.hookimpl(hookwrapper=True)
-    def pytest_runtest_setup(item):
-        _COMPILE_LOG.start(item.nodeid, "setup")
-        yield
-        _COMPILE_LOG.stop()
+    def _logged(phase):
+        @pytest.hookimpl(hookwrapper=True)
+        def hook(item):
+            _COMPILE_LOG.start(item.nodeid, phase)
+            yield
+            _COMPILE_LOG.stop()
 
-    @pytest.hookimpl(hookwrapper=True)
-    def pytest_runtest_call(item):
-        _COMPILE_LOG.start(item.nodeid, "call")
-        yield
-        _COMPILE_LOG.stop()
+        return hook
 
-    @pytest.hookimpl(hookwrapper=True)
-    def pytest_runtest_teardown(item):
-        _COMPILE_LOG.start(item.nodeid, "teardown")
-        yield
-        _COMPILE_LOG.stop()
+    pytest_runtest_setup = _logged("setup")
+    pytest_runtest_call = _logged("call")
+    pytest_runtest_teardown = _logged("teardown")

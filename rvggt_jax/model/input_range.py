@@ -76,10 +76,11 @@ def program_check_enabled() -> bool:
 
 
 def _in_program(images: jax.Array) -> None:
-    """The check as part of the traced program (see `program_check_enabled`). A host callback can only be lowered for a
-    platform this process has a client for; a program lowered for another one (a
-    deviceless compile for a GPU or TPU, `rvggt plan`) goes without the check, chosen per
-    platform at lowering time (`lax.platform_dependent`), so it still lowers."""
+    """The check as part of the traced program (see `program_check_enabled`). A host
+    callback can only be lowered for a platform this process has a client for; a program
+    lowered for another one (a deviceless compile for a GPU or TPU, `rvggt plan`) goes
+    without the check, chosen per platform at lowering time (`lax.platform_dependent`),
+    so it still lowers."""
     if not program_check_enabled():
         return
 
@@ -97,7 +98,9 @@ def warn_if_out_of_range(images: Any) -> None:
     """Warn (`InputRangeWarning`) when float `images` (any shape) hold values outside
     [0, 1] or NaN. Concrete arrays are checked now; a tracer (under `jax.jit`, `grad`,
     `shard_map`) gets the check inside its program, reported by `jax.debug.callback` when
-    the program runs, unless the persistent compilation cache is on (`program_check_enabled`). Integer images are not checked (their scaling is the caller's)."""
+    the program runs, unless the persistent compilation cache is on
+    (`program_check_enabled`). Integer images are not checked (their scaling is the
+    caller's)."""
     if not jnp.issubdtype(jnp.result_type(images), jnp.floating) or 0 in np.shape(images):
         return  # (an empty array is the shape check's to refuse)
     if isinstance(images, jax.core.Tracer):

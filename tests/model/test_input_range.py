@@ -75,13 +75,14 @@ def _persistent_cache(directory):
         jax.config.update("jax_compilation_cache_dir", saved)
 
 
-def test_under_jit_the_program_warns_and_compiles_once(tiny):
-    params, config = tiny
+@pytest.fixture
+def without_persistent_cache():
     with _persistent_cache(None):
-        _warns_under_jit(params, config)
+        yield
 
 
-def _warns_under_jit(params, config):
+def test_under_jit_the_program_warns_and_compiles_once(tiny, without_persistent_cache):
+    params, config = tiny
     # a function of its own: jax.jit(rvggt_forward) would share its cache with the other
     # tests' jax.jit(rvggt_forward) in this process
     fwd = jax.jit(lambda p, x, config: rvggt_forward(p, x, config), static_argnames="config")
@@ -105,10 +106,13 @@ def test_with_the_persistent_cache_on_the_program_holds_no_callback(tiny, tmp_pa
     cache on (as `rvggt` runs) the traced program leaves the check out, so that it is
     stored; with it off the check is in."""
     params, config = tiny
-    fwd = jax.jit(lambda p, x: rvggt_forward(p, x, config))
+
+    def program_text():  # a fresh function each time: jit caches its trace, not the setting
+        return jax.jit(lambda p, x: rvggt_forward(p, x, config)).lower(params, _images("ok")).as_text()
+
     with _persistent_cache(None):
         assert rvggt_jax.model.input_range.program_check_enabled()
-        assert "callback" in fwd.lower(params, _images("ok")).as_text()
+        assert "callback" in program_text()
     with _persistent_cache(str(tmp_path)):
         assert not rvggt_jax.model.input_range.program_check_enabled()
-        assert "callback" not in jax.jit(lambda p, x: rvggt_forward(p, x, config)).lower(params, _images("ok")).as_text()
+        assert "callback" not in program_text()
