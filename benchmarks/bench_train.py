@@ -3,23 +3,31 @@ clipping, AdamW) on this CPU, and the memory XLA plans for it.
 
 1. `run`: the small benchmark layout of bench_memory.py (24 layers of width 64, DINO
    depth 1, small heads, no track head; upstream random init) at S = 8 frames of
-   168 x 224, all parameters trained, with and without remat (`VGGTConfig.remat`): compile
+   168 x 224, all parameters trained, with and without remat (`VGGTConfig.remat`, True:
+   "full"): compile
    time, wall time of one step (median of the repeats after a warm-up) and XLA's memory
    analysis (arguments, outputs, temporaries):
 
        python benchmarks/bench_train.py run
 
 2. `plan`: compile only (nothing allocated, nothing runs) of the VGGT-1B train step
-   (no track head) at 24 frames of 518 x 518, bfloat16 aggregator compute, float32
-   weights and AdamW moments, remat on (and `--no-remat` for the comparison):
+   (no track head) at 518 x 518, bfloat16 aggregator compute, float32 master weights and
+   AdamW moments, remat "full", for issue 25's rows: (a) everything trained, 24 frames;
+   (b) `train="heads"`, 48 frames. XLA's memory analysis (arguments, outputs,
+   temporaries; total = their sum less the aliased bytes, the donated state) and the
+   compile time, for this host's CPU (default) or, compiled here without the device, for
+   accelerators of `rvggt_jax.planning.targets` (XLA:GPU, XLA:TPU: the `[plan]` extra);
+   each row names the compiler that planned it:
 
-       python benchmarks/bench_train.py plan
+       python benchmarks/bench_train.py plan --target h200 cpu
+       python benchmarks/bench_train.py plan --target h200 --rows all:24 --remat layers full dots
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import statistics
 import sys
 import time
@@ -87,24 +95,74 @@ def run(args) -> list[str]:
     return rows
 
 
-def plan(args) -> list[str]:
-    config = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False).with_dtype("bfloat16")
-    tc = train.TrainConfig()
+# the rows of issue 25's "Done when": (what is trained, frames)
+PLAN_ROWS = (("all", 24), ("heads", 48))
+
+
+def _placed(tree, device):
+    """Abstract leaves of `tree` placed on `device` (a target's abstract device)."""
+    where = jax.sharding.SingleDeviceSharding(device)
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=where), tree)
+
+
+def plan_step(target: str, train_what: str, frames: int, size: int, remat, compiler_options=None) -> dict:
+    """XLA's plan of one VGGT-1B train step (no track head; bfloat16 aggregator compute,
+    float32 master weights and AdamW moments) for `target` (a name of
+    `rvggt_jax.planning.targets`; "cpu": this host), compiled here without the device
+    (nothing runs). Returns the memory analysis (bytes), compile seconds, the compiler,
+    the attention kernel, or `needed` when XLA:TPU refused the program."""
+    from rvggt_jax.planning.memory import attention_kernel
+    from rvggt_jax.planning.targets import exhausted_hbm, get_target, target_device
+
+    tgt = get_target(target)
+    dev = target_device(tgt)
+    config = dataclasses.replace(VGGTConfig.vggt_1b(), enable_track=False).with_dtype("bfloat16").with_remat(remat)
+    tc = train.TrainConfig(train=train_what)
     params = abstract_params(config)  # float32 master weights
-    state = jax.eval_shape(lambda p: train.init_state(p, tc), params)
-    batch = _abstract_batch(1, args.frames, args.size, args.size)
-    rows = ["| model | S | H x W | compute | remat | compile s | arguments GB | temporaries GB | total GB |",
-            "|---|---:|---|---|---|---:|---:|---:|---:|"]
-    for remat in ([True, False] if args.no_remat else [True]):
-        step = train.make_train_step(config.with_remat(remat), tc, donate=True)
-        t0 = time.perf_counter()
-        compiled = step.lower(state, batch).compile()
-        mem = _mem(compiled)
-        row = (f"| VGGT-1B (no track head) | {args.frames} | {args.size} x {args.size} | bfloat16 | "
-               f"{'on' if remat else 'off'} | {time.perf_counter() - t0:.0f} | {mem['arguments'] / GB:.1f} | "
-               f"{mem['temporaries'] / GB:.1f} | {mem['total'] / GB:.1f} |")
-        print(row, flush=True)
-        rows.append(row)
+    state = _placed(jax.eval_shape(lambda p: train.init_state(p, tc), params), dev)
+    batch = _placed(_abstract_batch(1, frames, size, size), dev)
+    step = train.make_train_step(config, tc, donate=True)
+    options = {**tgt.options(), **(compiler_options or {})}
+    t0 = time.perf_counter()
+    lowered = step.lower(state, batch)
+    out = dict(target=tgt.name, compiler=f"XLA:{'GPU' if tgt.platform == 'cuda' else tgt.platform.upper()} "
+                                         f"({dev.device_kind}; {tgt.described_by})",
+               attention=attention_kernel(lowered.as_text()), options=options, remat=config.remat,
+               train=train_what, frames=frames, size=size, memory=tgt.memory()[0])
+    try:
+        compiled = lowered.compile(compiler_options=options or None)
+    except Exception as e:  # noqa: BLE001 - XLA's error types move between versions
+        exhausted = exhausted_hbm(str(e))
+        if exhausted is None:
+            raise
+        return dict(out, needed=exhausted[0], seconds=time.perf_counter() - t0)
+    return dict(out, **_mem(compiled), seconds=time.perf_counter() - t0, compiled=compiled)
+
+
+def plan(args) -> list[str]:
+    gib = 2 ** 30
+
+    def cell(d, key):
+        return f"{d[key] / gib:.2f}" if key in d else "n/a"
+
+    rows = ["| target | compiler | trained | S | H x W | remat | arguments GiB | outputs GiB | temporaries GiB | "
+            "total GiB | attention | compile s |", "|---|---|---|---:|---|---|---:|---:|---:|---:|---|---:|"]
+    extra = dict(kv.split("=", 1) for kv in args.xla_option)
+    extra = {k: {"true": True, "false": False}.get(v.lower(), v) for k, v in extra.items()}
+    for target in args.target:
+        for row in args.rows:
+            what, frames = row.split(":")
+            for remat in args.remat:
+                d = plan_step(target, what, int(frames), args.size, remat, extra)
+                total = cell(d, "total") if "needed" not in d else f"{d['needed'] / gib:.2f} (refused)"
+                options = "".join(f", {k}={v}" for k, v in d["options"].items())
+                line = (f"| {d['target']} | {d['compiler']}{options} | {what} | {frames} | {args.size} x {args.size} | "
+                        f"{d['remat']} | {cell(d, 'arguments')} | {cell(d, 'outputs')} | {cell(d, 'temporaries')} | "
+                        f"{total} | {d['attention']} | {d['seconds']:.0f} |")
+                print(line, flush=True)
+                rows.append(line)
+                del d
+                gc.collect()
     return rows
 
 
@@ -118,12 +176,24 @@ def main() -> None:
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--remat", choices=("both", "off", "on"), default="both")
     p = sub.add_parser("plan")
-    p.add_argument("--frames", type=int, default=24)
+    p.add_argument("--target", nargs="+", default=["cpu"], metavar="T",
+                   help="compile for these (names of rvggt_jax.planning.targets: h200, h100, tpu-v6e, ...), here "
+                        "without the device; default: this host's CPU")
+    p.add_argument("--rows", nargs="+", default=[f"{w}:{s}" for w, s in PLAN_ROWS], metavar="TRAIN:FRAMES",
+                   help="what is trained (all, heads) and the frames of each plan (default: %(default)s)")
     p.add_argument("--size", type=int, default=518)
-    p.add_argument("--no-remat", action="store_true", help="also plan the step without remat")
+    p.add_argument("--remat", nargs="+", default=["full"],
+                   help="VGGTConfig.remat of each plan: none, layers, full, dots (default %(default)s)")
+    p.add_argument("--xla-option", nargs="*", default=[], metavar="NAME=VALUE",
+                   help="extra XLA compiler options (e.g. xla_gpu_enable_triton_gemm=false)")
     args = ap.parse_args()
     if args.cmd == "run":  # timed
         rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
+    else:  # deviceless: no device client (as `rvggt plan`)
+        from rvggt_jax.app.plan_command import use_host_compilers
+
+        use_host_compilers()
+        args.remat = [{"true": True, "false": False}.get(r.lower(), r) for r in args.remat]
     rows = run(args) if args.cmd == "run" else plan(args)
     print("\n".join(rows))
 

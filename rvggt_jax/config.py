@@ -18,12 +18,17 @@ from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from rvggt_jax.compression.config import CompressionConfig, make_compression
 from rvggt_jax.ops.kernels.names import HALF_ONLY, KERNELS
 
 # Compute dtypes of the aggregator.
 DTYPES = ("float32", "bfloat16")
+# Rematerialisation policies of a training step (`VGGTConfig.remat`, `rvggt_jax.model.remat`);
+# True and False name the default policy and none
+REMAT_POLICIES = ("none", "layers", "full", "dots")
+REMAT_OF_BOOL = {False: "none", True: "full"}
 
 
 class TokenGrid(NamedTuple):
@@ -121,17 +126,25 @@ class VGGTConfig:
     # torch.autocast: "float32" (exact, the default) or "bfloat16". The heads always run
     # in float32. See docs/method.md ("Mixed precision").
     dtype: str = "float32"
-    # Rematerialisation for training: each aggregator layer (frame + global block) and each
-    # DINO block is a `jax.checkpoint`, so a gradient keeps only the layer inputs and
-    # recomputes the rest in the backward pass. Values are unchanged; a forward alone is
+    # Rematerialisation for training (`rvggt_jax.model.remat`, docs/training.md "Memory"):
+    # "none"; "layers" (each aggregator layer and DINO block a `jax.checkpoint`); "full"
+    # (also the DINOv2 patch embed as a whole and each frame group of the DPT heads: a step
+    # keeps the images, each layer's input and the kept layers the heads read); "dots"
+    # ("full", the matmul outputs saved in each checkpoint: less recomputation, more
+    # memory). True is "full", False "none". Values are unchanged; a forward alone is
     # unaffected.
-    remat: bool = False
+    remat: str = "none"
     # The attention kernel (`rvggt_jax.ops.attention`; names in ops/kernels/names.py):
     # "auto" takes the kernel of the platform the program is compiled for (cuDNN for
     # bfloat16 on an NVIDIA GPU, Pallas flash on a TPU, the blocked kernel on a CPU and for
     # float32 on a GPU). A 16-bit-only kernel ("cudnn") needs dtype "bfloat16" and runs
     # the aggregator's attention; the float32 heads then take "auto".
     attention: str = "auto"
+
+    def __post_init__(self):
+        # remat=True / False (the flag it was before the policies) names a policy
+        if isinstance(self.remat, (bool, np.bool_)):
+            object.__setattr__(self, "remat", REMAT_OF_BOOL[bool(self.remat)])
 
     # ---- derived sizes -------------------------------------------------------------
     @property
@@ -201,9 +214,10 @@ class VGGTConfig:
         """A copy whose attention runs on `kernel` (one of `KERNELS`)."""
         return replace(self, attention=kernel).validate()
 
-    def with_remat(self, remat: bool = True) -> "VGGTConfig":
-        """A copy with per-block rematerialisation (`remat`) on or off."""
-        return replace(self, remat=bool(remat))
+    def with_remat(self, remat: bool | str = True) -> "VGGTConfig":
+        """A copy with the rematerialisation policy `remat` (one of `REMAT_POLICIES`;
+        True: "full", False: "none")."""
+        return replace(self, remat=remat).validate()
 
     def with_compression(self, name: str, **overrides: Any) -> "VGGTConfig":
         """A copy of this config with the named compression preset (see
@@ -213,6 +227,8 @@ class VGGTConfig:
     def validate(self) -> "VGGTConfig":
         if self.dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {DTYPES}; got {self.dtype!r}")
+        if self.remat not in REMAT_POLICIES:
+            raise ValueError(f"remat must be one of {REMAT_POLICIES} (or True / False); got {self.remat!r}")
         if self.attention not in KERNELS:
             raise ValueError(f"attention must be one of {KERNELS}; got {self.attention!r}")
         if self.attention in HALF_ONLY and self.dtype == "float32":

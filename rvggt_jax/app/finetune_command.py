@@ -29,7 +29,12 @@ def add_finetune_parser(sub) -> None:
     p.add_argument("--preset", default=None, help="compression preset during training, a name or a preset file path.json "
                                                      "(default: dense)")
     p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"))
-    p.add_argument("--remat", action="store_true", help="rematerialise every block (less memory, ~1.3x time)")
+    # (the names of rvggt_jax.config.REMAT_POLICIES: building the parser imports no JAX)
+    p.add_argument("--remat", nargs="?", const="full", default="none", choices=("none", "layers", "full", "dots"),
+                   help="rematerialisation (less memory, more time): --remat alone is 'full' (every aggregator "
+                        "layer, the patch embed and the heads' frame groups recomputed in the backward pass); "
+                        "'layers' the aggregator layers and DINO blocks only; 'dots' keeps their matmul outputs "
+                        "(docs/training.md, \"Memory\"; default %(default)s)")
     p.add_argument("--save-every", type=int, default=500)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")

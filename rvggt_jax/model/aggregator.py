@@ -19,7 +19,7 @@ import numpy as np
 
 from rvggt_jax import compression
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model import layers
+from rvggt_jax.model import layers, remat
 from rvggt_jax.model.global_block import dense_global_block
 from rvggt_jax.model.kept import KeptLayer, kept_buffer, kept_slots, stored, write_slot
 from rvggt_jax.model.params import Params
@@ -193,8 +193,8 @@ def _scan_layers(p: Params, carry: tuple, group: tuple[int, ...], slot: np.ndarr
             kept_global = write_slot(kept_global, x.reshape(b, s, num_tokens, c), k, dtype)
         return (x, kept_frame, kept_global, cached), None
 
-    if config.remat:  # keep only the layer's inputs for the backward pass (config.remat)
-        layer = jax.checkpoint(layer)
+    # a training step keeps only the layer's inputs for the backward pass (config.remat)
+    layer = remat.checkpoint(layer, config, "block")
     cached = compression.Match.zeros(plan0, b) if band else None
     xs = (jnp.arange(len(group)), jnp.asarray(slot[list(group)]))
     (x, kept_frame, kept_global, cached), _ = jax.lax.scan(layer, (*carry, cached), xs)

@@ -26,6 +26,7 @@ from rvggt_jax.model.patch_embed import unit_images
 from rvggt_jax.model.heads.dpt import dense_heads
 from rvggt_jax.model.heads.track import track_head
 from rvggt_jax.model.input_range import InputRangeWarning, warn_if_out_of_range  # noqa: F401 (re-exported)
+from rvggt_jax.model import remat
 from rvggt_jax.model.layers import Params
 from rvggt_jax.weights.layout import expected_param_paths, flatten_params
 
@@ -237,10 +238,13 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
         out["pose_enc_list"] = pose_enc_list
     grid = config.token_grid((hh, ww))
     enabled = {"depth_head": config.enable_depth, "point_head": config.enable_point}
-    out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid))
+    # a training step re-reads each frame group's tokens and recomputes its feature maps (config.remat)
+    per_group = functools.partial(remat.checkpoint, config=config, part="head")
+    out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid,
+                           per_group))
     if with_track:
         tracks, vis, conf = track_head(params["track_head"], agg, config.track_head_config, grid, query_points,
-                                       shards=shards)
+                                       shards=shards, remat=per_group)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
     if config.return_images:
         # A copy of the input (an argument cannot be an output): made from the last head

@@ -327,13 +327,14 @@ def select_block(blocks: Params, indices, i: jax.Array) -> Params:
 
 def block_stack(blocks: Params, indices, x: jax.Array, num_heads: int,
                 pos: "jax.Array | RopeTables | None" = None, rope_freq: float | None = None,
-                eps: float = TORCH_LN_EPS, dtype: Any = None, remat: bool = False) -> jax.Array:
-    """Apply numbered blocks `indices` (in order) with `lax.scan`; `remat`: each block a
-    `jax.checkpoint` (VGGTConfig.remat)."""
+                eps: float = TORCH_LN_EPS, dtype: Any = None, remat: Any = None) -> jax.Array:
+    """Apply numbered blocks `indices` (in order) with `lax.scan`; `remat`: how each block
+    runs in a training step, a wrapper such as `jax.checkpoint` (`model.remat.checkpoint`
+    under `VGGTConfig.remat`), or None."""
     def step(h, i):
         return block(select_block(blocks, indices, i), h, num_heads, pos, rope_freq, eps, dtype), None
 
-    if remat:
-        step = jax.checkpoint(step)
+    if remat is not None:
+        step = remat(step)
 
     return jax.lax.scan(step, x, jnp.arange(len(indices)))[0]

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.model import layers
+from rvggt_jax.model import layers, remat
 from rvggt_jax.ops.attention import attention
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.chunks import update_tokens
@@ -180,7 +180,7 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
     depth = dino.depth
     if depth > 1:
         x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype,
-                               remat=config.remat)
+                               remat=lambda f: remat.checkpoint(f, config, "block"))
 
     # The last block's attention hook also returns the saliency, read off the q and k it
     # computes anyway; whole images per chunk, like every block.
@@ -214,5 +214,13 @@ def patch_embed_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tupl
     (DINO tokens [B*S, 1 + R + h*w, C] with the patch tokens after the prefix of 1 + R,
     the prefix length, Psi [B, S, h*w])."""
     b, s, c, hh, ww = images.shape
-    tokens, num_prefix, saliency = dino_tokens(p, images.reshape(b * s, c, hh, ww), config)
+    num_prefix = 1 + p["register_tokens"].shape[1]
+
+    def dino(p, images):
+        tokens, _, saliency = dino_tokens(p, images, config)
+        return tokens, saliency
+
+    # a training step under remat "full" keeps the images alone: the whole DINOv2 forward is
+    # recomputed for its backward pass (config.remat)
+    tokens, saliency = remat.checkpoint(dino, config, "patch_embed")(p, images.reshape(b * s, c, hh, ww))
     return tokens, num_prefix, saliency.reshape(b, s, -1)

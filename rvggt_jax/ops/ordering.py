@@ -12,6 +12,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
+
+# The name of `with_dependency`'s zeros: a `jax.checkpoint` keeps these scalars
+# (`model.remat`) rather than recompute them from the arrays they order after (a whole
+# kept-layer buffer per aggregator layer, else).
+ORDER_NAME = "rvggt_order"
 
 
 def zeros_from(shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> jax.Array:
@@ -26,7 +32,8 @@ def zeros_from(shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> jax.Array:
 def with_dependency(x: jax.Array, dep) -> jax.Array:
     """x, unchanged, computed from each leaf of `dep` too (x + a zero made from it: exact;
     the add fuses into x's consumers): XLA orders ops by data dependency only, and
-    `lax.optimization_barrier` does not order them on CPU."""
+    `lax.optimization_barrier` does not order them on CPU. Each zero is named ORDER_NAME:
+    a checkpoint whose backward pass recomputes x keeps the zero, not `dep`."""
     for leaf in jax.tree.leaves(dep):
-        x = x + zeros_from((), x.dtype, leaf)
+        x = x + checkpoint_name(zeros_from((), x.dtype, leaf), ORDER_NAME)
     return x

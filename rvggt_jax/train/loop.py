@@ -39,7 +39,7 @@ class FinetuneOptions:
     train: str | tuple[str, ...] = "all"
     preset: str | None = None
     dtype: str = "float32"
-    remat: bool = False
+    remat: bool | str = False  # VGGTConfig.remat: a policy name, True ("full") or False ("none")
     save_every: int = 500
     log_every: int = 10
     seed: int = 0

@@ -18,8 +18,9 @@ i.e. leaves of rank >= 2, not on biases, norms, tokens or LayerScale) with a lin
 warm-up from 0 to `learning_rate` over `warmup_steps` and a cosine decay to
 `learning_rate * final_lr_ratio` at `total_steps`. Frozen parameters
 (`TrainConfig.train`) get `optax.set_to_zero` through `optax.multi_transform`, their
-gradients are never formed (stop_gradient: XLA drops their backward pass) and they are
-not counted in the clipping norm.
+gradients are never formed (stop_gradient inside the differentiated function,
+`trainable_loss`: no tangent reaches them, so reverse mode keeps nothing of the work only
+they feed) and they are not counted in the clipping norm.
 """
 
 from __future__ import annotations
@@ -156,6 +157,24 @@ def loss_fn(params: Any, batch: dict, config: VGGTConfig, loss_cfg: LossConfig) 
     return vggt_loss(out, batch, loss_cfg)
 
 
+def frozen_as_constants(params: Any, labels: Any) -> Any:
+    """`params` with every frozen leaf (label FROZEN) behind `stop_gradient`. Applied
+    inside the differentiated function, their tangents are symbolic zeros: reverse mode
+    neither computes nor keeps anything for the work that only they feed (a frozen
+    aggregator runs as a plain forward; only its outputs the trained heads read are kept).
+    Outside it, stop_gradient would not mark them (a differentiated argument is a tracer),
+    the whole forward would be linearised and its residuals left to XLA's dead-code
+    elimination, which XLA:CPU does not finish (its plan of the frozen aggregator kept
+    each attention block's K and V: 39 GiB at 48 frames of 518 x 518)."""
+    return jax.tree.map(lambda p, lab: p if lab == TRAIN else jax.lax.stop_gradient(p), params, labels)
+
+
+def trainable_loss(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig) -> tuple[jax.Array, dict]:
+    """`loss_fn` with the parameters `tc.train` freezes as constants (`frozen_as_constants`):
+    the function the train step differentiates."""
+    return loss_fn(frozen_as_constants(params, param_labels(params, tc.train)), batch, config, tc.loss)
+
+
 def micro_batches(batch: dict, accumulate: int) -> dict:
     """Every leaf [B, ...] -> [accumulate, B / accumulate, ...] (consecutive scenes per
     micro-batch). A ValueError when `accumulate` does not divide B, naming the ones that do."""
@@ -174,7 +193,8 @@ def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc:
     backward at a time, gradients summed in float32 (returned in the parameters'
     dtypes). Each micro-batch's loss divides by the whole batch's counts (its share of the
     whole loss, `losses.shared_denominators`), so the sums are the whole batch's
-    objective, parts and gradient."""
+    objective, parts and gradient. The parameters `tc.train` freezes are constants
+    (`trainable_loss`): their gradients are zeros."""
     from rvggt_jax.model.forward import rvggt_forward
 
     micro = micro_batches(batch, tc.accumulate)
@@ -186,7 +206,7 @@ def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc:
 
     def one(acc, mb):
         with shared_denominators(totals):
-            (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, mb, config, tc.loss)
+            (loss, parts), grads = jax.value_and_grad(trainable_loss, has_aux=True)(params, mb, config, tc)
         return jax.tree.map(lambda a, x: a + x.astype(jnp.float32), acc, (loss, parts, grads)), None
 
     # float32 sums of the loss, its parts (shapes: a forward trace) and the gradient (the params')
@@ -211,13 +231,13 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
 
     def step(state: TrainState, batch: dict) -> tuple[TrainState, dict]:
         labels = param_labels(state.params, tc.train)
-        # frozen leaves as constants: their cotangents (and any backward pass that only
-        # they need, e.g. the aggregator when training heads) are never computed
-        live = jax.tree.map(lambda p, lab: p if lab == TRAIN else jax.lax.stop_gradient(p), state.params, labels)
+        # frozen leaves as constants inside the differentiated function (`trainable_loss`):
+        # their cotangents, and any backward pass or residual that only they need (the
+        # aggregator's when training heads), are never formed
         if tc.accumulate == 1:
-            (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(live, batch, config, tc.loss)
+            (loss, parts), grads = jax.value_and_grad(trainable_loss, has_aux=True)(state.params, batch, config, tc)
         else:
-            (loss, parts), grads = accumulated_value_and_grad(live, batch, config, tc)
+            (loss, parts), grads = accumulated_value_and_grad(state.params, batch, config, tc)
         trained = jax.tree.map(lambda g, lab: g if lab == TRAIN else jnp.zeros((), g.dtype), grads, labels)
         tx = make_optimizer(tc, state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)

@@ -4,6 +4,7 @@ memory plan and not the values; the losses and the data reader on their own."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -13,6 +14,8 @@ import pytest
 
 import rvggt_jax
 from rvggt_jax import train
+from rvggt_jax.config import REMAT_POLICIES, DinoConfig
+from rvggt_jax.model.forward import rvggt_forward
 from rvggt_jax.synthetic import make_scene, write_scene
 from tests.helpers.micro import micro_config
 
@@ -107,12 +110,74 @@ def test_frozen_aggregator_stays_bit_equal(setup):
         train.param_labels(params, ("depht_head",))
 
 
+def _checkpoints(jaxpr) -> list:
+    """The policy of every `jax.checkpoint` in `jaxpr` and the jaxprs inside it (scans, conds)."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in ("checkpoint", "remat2"):  # (JAX's name for it, jax 0.10: remat2)
+            found.append(eqn.params.get("policy"))
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else (value,):
+                inner = sub if hasattr(sub, "eqns") else getattr(sub, "jaxpr", None)
+                if hasattr(inner, "eqns"):
+                    found += _checkpoints(inner)
+    return found
+
+
+def _saves(policy) -> tuple[bool, bool]:
+    """(keeps the ordering zeros, keeps a matmul's output) under a checkpoint `policy`."""
+    from jax.ad_checkpoint import checkpoint_name
+
+    from rvggt_jax.ops.ordering import ORDER_NAME
+
+    def kept(fn, *args):
+        eqns = jax.make_jaxpr(fn)(*args).jaxpr.eqns
+        return any(policy(e.primitive, *[v.aval for v in e.invars], **e.params) for e in eqns)
+
+    a = jnp.ones((4, 4))
+    return kept(lambda x: checkpoint_name(x * 2, ORDER_NAME), a), kept(lambda x: x @ x, a)
+
+
+def test_remat_policies_checkpoint_what_they_say():
+    """Traced only: each policy's `jax.checkpoint`s in the forward of `setup`'s layout with
+    a DINO of 2 blocks."""
+    config = micro_config(enable_point=False, enable_track=False, dino=DinoConfig(depth=2, num_heads=2))
+    assert config.with_remat(True).remat == "full" and config.with_remat(False).remat == "none"
+    assert config.with_remat(True) == config.with_remat("full") == dataclasses.replace(config, remat="full")
+    assert rvggt_jax.VGGTConfig.from_dict({**config.to_dict(), "remat": True}).remat == "full"  # an older train.json
+    with pytest.raises(ValueError, match="remat must be one of"):
+        config.with_remat("everything")
+    from rvggt_jax.app.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert [parse(["finetune", "d", "--out", "o", *flag]).remat for flag in ([], ["--remat"], ["--remat=layers"])] == [
+        "none", "full", "layers"]
+    # the parser (it imports no JAX) takes every policy of the config
+    assert [parse(["finetune", "d", "--out", "o", f"--remat={p}"]).remat for p in REMAT_POLICIES] == list(
+        REMAT_POLICIES)
+    params = jax.eval_shape(lambda: rvggt_jax.init_params(config, 0))
+    images = jax.ShapeDtypeStruct((1, FRAMES, 3) + SIZE, jnp.float32)
+    found = {policy: _checkpoints(jax.make_jaxpr(rvggt_forward, static_argnums=2)(
+        params, images, config.with_remat(policy)).jaxpr) for policy in REMAT_POLICIES}
+    # the DINO block scan and the aggregator's two scans (layers 0-2 write their global
+    # halves, the last layer is the residual stream); "full" adds the patch embed and the
+    # heads' frame groups; "dots" saves the blocks' matmul outputs
+    blocks = 3
+    assert {p: len(f) for p, f in found.items()} == {"none": 0, "layers": blocks, "full": blocks + 2,
+                                                     "dots": blocks + 2}
+    # (every checkpoint keeps the ordering zeros, ops.ordering.ORDER_NAME)
+    keeps = {p: [_saves(policy) for policy in f] for p, f in found.items()}
+    assert keeps["full"] == [(True, False)] * (blocks + 2)
+    assert sorted(keeps["dots"]) == [(True, False)] * 2 + [(True, True)] * blocks
+
+
 def test_remat_changes_memory_plan_not_values(setup):
+    # remat=True is "full": the aggregator layers, DINO as a whole and the heads' frame groups
     config, tc, params, batches, state0, compiled = setup
     step_r = train.make_train_step(config.with_remat(), tc, donate=False)
     compiled_r = step_r.lower(state0, batches[0]).compile()
     plain, remat = compiled.memory_analysis(), compiled_r.memory_analysis()
-    assert remat.temp_size_in_bytes != plain.temp_size_in_bytes, (remat, plain)
+    assert remat.temp_size_in_bytes < plain.temp_size_in_bytes, (remat, plain)
     s1, m1 = compiled(state0, batches[0])
     s2, m2 = compiled_r(state0, batches[0])
     np.testing.assert_allclose(float(m2["loss_objective"]), float(m1["loss_objective"]), rtol=1e-6)

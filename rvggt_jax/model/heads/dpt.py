@@ -12,7 +12,7 @@ all frames at once gives the same numbers.
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import chex
 import jax
@@ -230,9 +230,12 @@ def frames_per_group(num_frames: int, image_hw: tuple[int, int], group_pixels: i
     return int(min(num_frames, max(1, group_pixels // (image_hw[0] * image_hw[1]))))
 
 
-def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int]):
+def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int], remat: Callable | None = None):
     """Run a per-frame `fn(tokens [G, P, C] x 4) -> pytree of [G, ...]` over groups of G
-    frames (a `fori_loop` writing each group's result in place).
+    frames (a `fori_loop` writing each group's result in place). `remat`: how a group
+    runs in a training step (a `jax.checkpoint`: its backward pass keeps where the group
+    starts, re-reads its tokens and recomputes its feature maps; `model.remat.checkpoint`),
+    or None.
 
     tokens: `KeptLayer`s [B, S, P, C]; returns the pytree
     with leaves [B, S, ...]. Nothing is padded or copied: when G does not divide B*S, the
@@ -244,9 +247,15 @@ def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int]):
     g = frames_per_group(n, image_hw)
     groups = -(-n // g)
 
+    def group(start):  # (the frames are read inside: a checkpoint keeps `start` and the buffers, no copy)
+        return fn([t.frames(start, g) for t in tokens])
+
+    if remat is not None:
+        group = remat(group)
+
     def run(i):
         start = jnp.minimum(i * g, n - g)
-        return start, fn([t.frames(start, g) for t in tokens])
+        return start, group(start)
 
     if groups == 1:
         out = run(0)[1]
@@ -270,19 +279,20 @@ def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[KeptL
 
 
 def dpt_features(params: Params, aggregated: Aggregated, grid: TokenGrid, *,
-                 layer_idx: Sequence[int] = (4, 11, 17, 23), down_ratio: int = 2, pos_embed: bool = False) -> jax.Array:
+                 layer_idx: Sequence[int] = (4, 11, 17, 23), down_ratio: int = 2, pos_embed: bool = False,
+                 remat: Callable | None = None) -> jax.Array:
     """Feature-only DPT (upstream `DPTHead(feature_only=True)`, the track head's extractor).
 
     aggregated: aggregator tokens, each [B, S, P, 2E]; grid: the images' `TokenGrid`.
     Returns [B, S, h*p/down_ratio, w*p/down_ratio, F] with (h, w) = `grid.hw`, p the patch
     size and F the width of `scratch.output_conv1`. The defaults are the track head's
-    (down_ratio 2, no positional embedding)."""
+    (down_ratio 2, no positional embedding). `remat`: see `map_frame_groups`."""
     image_hw, patch_start_idx, patch_size = grid.image_hw, grid.patch_start_idx, grid.patch_size
 
     def per_frames(tokens):
         return _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, down_ratio)
 
-    return map_frame_groups(per_frames, _layers_read(aggregated, layer_idx), image_hw)
+    return map_frame_groups(per_frames, _layers_read(aggregated, layer_idx), image_hw, remat)
 
 
 # ---------------------------------------------------------------------------------------
@@ -346,16 +356,19 @@ def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start
 
 
 def dpt_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid, *,
-             activation: str = "inv_log", conf_activation: str = "expp1") -> tuple[jax.Array, jax.Array]:
+             activation: str = "inv_log", conf_activation: str = "expp1", remat: Callable | None = None
+             ) -> tuple[jax.Array, jax.Array]:
     """Dense DPT prediction (upstream `DPTHead`, not feature-only).
 
     aggregated: aggregator tokens, each [B, S, P, 2E] (list of all layers or dict by layer
     index); grid: the images' `TokenGrid` ((H, W), patch size). Returns (pred [B, S, H', W', C-1],
     conf [B, S, H', W']) with C the output_conv2 width and H' = H // patch_size * patch_size
-    (= H for the usual multiples of the patch size), W' likewise."""
+    (= H for the usual multiples of the patch size), W' likewise. `remat`: see
+    `map_frame_groups`."""
     per_frames = _dpt_per_frames(params, config, grid.image_hw, grid.patch_start_idx, grid.patch_size, activation,
                                  conf_activation)
-    pred, conf = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw)
+    pred, conf = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw,
+                                  remat)
     chex.assert_equal_shape_prefix([pred, conf], 4)
     return pred, conf
 
@@ -380,13 +393,13 @@ def point_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, gr
                     conf_activation=POINT_ACTIVATIONS[1])
 
 
-def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid
-                ) -> dict[str, jax.Array]:
+def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid,
+                remat: Callable | None = None) -> dict[str, jax.Array]:
     """The depth and point heads whose params are given ({"depth_head": ...,
     "point_head": ...}, either or both) in one loop over groups of frames: {"depth",
     "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
     return them. One loop reads the kept aggregator layers once (two loops would each
-    need their own copy of them in XLA's plan)."""
+    need their own copy of them in XLA's plan). `remat`: see `map_frame_groups`."""
     heads = {}
     args = (config, grid.image_hw, grid.patch_start_idx, grid.patch_size)
     if "depth_head" in params:
@@ -400,5 +413,5 @@ def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DP
     def per_frames(tokens):
         return {names: fn(tokens) for names, fn in heads.items()}
 
-    res = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw)
+    res = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw, remat)
     return {name: value for names, pair in res.items() for name, value in zip(names, pair)}
