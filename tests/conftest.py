@@ -13,7 +13,11 @@ from safetensors.numpy import load_file
 import rvggt_jax
 from tests.helpers.paths import REPO, TINY
 from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker
+from tests.helpers.xla_flags import suite_flags
 
+# LLVM at -O0 for every program the suite compiles (tests/helpers/xla_flags.py: the same
+# HLO and memory plans, about 40% less compile time); inherited by every subprocess.
+os.environ["XLA_FLAGS"] = suite_flags(os.environ.get("XLA_FLAGS", ""))
 # The suite runs CPU convolutions as the `rvggt` command does (multi-threaded; `import
 # rvggt_jax` alone leaves XLA's default, tests/ops/test_xla_cpu.py): before any backend.
 rvggt_jax.prefer_threaded_convolutions()

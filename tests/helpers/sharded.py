@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from tests.helpers.paths import HELPERS
+from tests.helpers.xla_flags import suite_flags
 
 SHARDED_DIR_ENV = "RVGGT_SHARDED_DIR"
 WORKER_SCRIPT = HELPERS / "sharded_worker.py"
@@ -21,7 +22,10 @@ WORKER: dict = {}  # "proc": the running worker; "owner": this process set $RVGG
 def start_sharded_worker(where: Path) -> None:
     """Run the worker in the background: its stdout, stderr and return code go to files
     in `where` (out.json, err.txt, rc: written last)."""
+    # (the worker sets its own device count; of the session's XLA flags it keeps only the
+    # suite's compile options)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["XLA_FLAGS"] = suite_flags()
     launcher = ("import subprocess, sys; out, err, rc = sys.argv[2:5]; "
                 "r = subprocess.run([sys.executable, sys.argv[1]], stdout=open(out, 'w'), stderr=open(err, 'w')); "
                 "open(rc + '.tmp', 'w').write(str(r.returncode)); __import__('os').replace(rc + '.tmp', rc)")
