@@ -12,7 +12,7 @@ from safetensors.numpy import load_file
 
 import rvggt_jax
 from tests.helpers.paths import REPO, TINY
-from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker
+from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker, stop_sharded_worker
 
 # The suite runs CPU convolutions as the `rvggt` command does (multi-threaded; `import
 # rvggt_jax` alone leaves XLA's default, tests/ops/test_xla_cpu.py): before any backend.
@@ -93,9 +93,7 @@ def pytest_sessionstart(session):
 def pytest_sessionfinish(session, exitstatus):
     import os
 
-    proc = WORKER.get("proc")
-    if proc is not None and proc.poll() is None:
-        proc.kill()
+    stop_sharded_worker()
     if WORKER.get("owner"):
         os.environ.pop(SHARDED_DIR_ENV, None)
     if os.environ.get("RVGGT_TEST_XLA_CACHE_OWNER") == str(os.getpid()):

@@ -76,6 +76,12 @@ def run_finetune_command(args) -> int:
                            dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)
     if not Path(args.data_dir).is_dir():
         raise InputError(f"no such data folder: {args.data_dir}")
+    if opts.devices > 1 or opts.fsdp or opts.frames_per_device is not None:
+        from rvggt_jax.train.sharded import train_layout
+
+        # a layout that does not fit fails before the model loads (finetune checks it again)
+        train_layout(opts.devices, opts.batch, opts.frames, opts.frames_per_device, accumulate=opts.accumulate,
+                     fsdp=opts.fsdp)
     params, config = load_model(args.weights, args.config, args.seed)
     if preset_file:
         import dataclasses

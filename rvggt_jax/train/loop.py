@@ -34,7 +34,7 @@ class FinetuneOptions:
     size: tuple[int, int] = (224, 294)
     batch: int = 1
     accumulate: int = 1  # micro-batches per step: `batch` scenes, `batch / accumulate` at a time
-    # over many devices (rvggt_jax.parallel.train): mesh "data" x "frames", frames / frames_per_device
+    # over many devices (rvggt_jax.train.sharded): mesh "data" x "frames", frames / frames_per_device
     # devices per scene; fsdp: the train state split over all of them
     devices: int = 1
     frames_per_device: int | None = None
@@ -76,7 +76,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
                          f"batch / accumulate scenes): --batch {opts.batch} takes --accumulate in {divisors}")
     layout = None
     if opts.devices > 1 or opts.fsdp or opts.frames_per_device is not None:  # (checked before reading data)
-        from rvggt_jax.parallel.train import train_layout
+        from rvggt_jax.train.sharded import train_layout
 
         layout = train_layout(opts.devices, opts.batch, opts.frames, opts.frames_per_device,
                               accumulate=opts.accumulate, fsdp=opts.fsdp)
@@ -99,7 +99,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
         log(f"resuming from step {start} in {out}")
     step_fn, place = make_train_step(config, tc), (lambda b: b)
     if layout is not None:
-        from rvggt_jax.parallel import train as multi
+        from rvggt_jax.train import sharded as multi
 
         mesh = multi.train_mesh(layout)
         step_fn = multi.make_sharded_train_step(config, tc, mesh, fsdp=layout.fsdp)

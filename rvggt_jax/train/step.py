@@ -151,7 +151,7 @@ def _query_points(batch: dict) -> jax.Array | None:
 
 # (params, images [B, S, 3, H, W], query points [B, N, 2] or None) -> `rvggt_forward`'s
 # outputs: the forward a train step differentiates (None: `rvggt_forward` on one device;
-# `rvggt_jax.parallel.train` passes one split over a mesh)
+# `rvggt_jax.train.sharded` passes one split over a mesh)
 Forward = Callable[[Any, jax.Array, "jax.Array | None"], dict]
 
 
@@ -238,7 +238,7 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
     every loss part (of the whole batch), "grad_norm" (trained leaves, before
     clipping) and "lr" (the rate this step used). `donate`: the input state's buffers are
     reused for the output (do not use a state after passing it). Over many devices:
-    `rvggt_jax.parallel.train.make_sharded_train_step`."""
+    `rvggt_jax.train.sharded.make_sharded_train_step`."""
     return jax.jit(train_step_fn(config, tc), donate_argnums=(0,) if donate else ())
 
 

@@ -83,19 +83,21 @@ def ring_gradient() -> dict:
 
 
 def train_steps() -> dict:
-    """One train step (forward, loss, gradient, clipping, AdamW) over 4 devices in each
-    layout of `rvggt_jax.parallel.train` against `make_train_step` on one device: the
+    """One train step (forward, loss, gradient, clipping, AdamW) over 4 devices in two
+    layouts of `rvggt_jax.train.sharded` against `make_train_step` on one device: the
     micro layout at its smallest (2 layers, width 32; camera and depth heads), 4 scenes
     of 4 frames of 28 x 42 whose depth masks differ (the loss's means must be the whole
-    batch's). Per layout: the relative error of every metric, of the gradient (AdamW's
-    first moment is 0.1 g; max error over the largest gradient) and of the update where
-    the gradient is above AdamW's noise floor (tests/train/test_accumulate.py: where |g| is
-    ~1e-9 AdamW's first step amplifies rounding), in units of the learning rate; how many
-    state leaves are split (FSDP); and the refused layouts' messages."""
+    batch's). Per layout: the relative error of every metric; of the gradient (AdamW's
+    first moment is 0.1 g; max error over the largest gradient); of the parameters after
+    the step (per leaf, over its largest value) and of the update (in units of the
+    learning rate), both where the gradient is above AdamW's noise floor
+    (tests/train/test_accumulate.py: where |g| is ~1e-9 AdamW's first step amplifies
+    rounding to a fraction of lr); how many state leaves are split (FSDP); and the
+    refused layouts' messages."""
     from rvggt_jax import train
     from rvggt_jax.config import CameraHeadConfig, DPTHeadConfig
     from rvggt_jax.model.forward import InputError
-    from rvggt_jax.parallel.train import (make_sharded_train_step, place_batch, place_state, train_layout,
+    from rvggt_jax.train.sharded import (make_sharded_train_step, place_batch, place_state, train_layout,
                                           train_mesh)
     from tests.helpers.micro import micro_config
 

@@ -1,4 +1,4 @@
-"""The train step over many devices (`rvggt_jax.parallel.train`, issue 25 item 4) against
+"""The train step over many devices (`rvggt_jax.train.sharded`, issue 25 item 4) against
 `make_train_step` on one device, on 4 host CPU devices: scenes and frames split at once
 (mesh data 2 x frames 2) and the frames around a ring of 4 with the parameters and
 optimiser state split 4 ways (FSDP). The checks run in tests/helpers/sharded_worker.py
@@ -66,7 +66,7 @@ def test_refused_layouts_say_what_would_work(report):
 
 
 def test_layouts():
-    from rvggt_jax.parallel.train import TrainLayout, leaf_spec, train_layout
+    from rvggt_jax.train.sharded import TrainLayout, leaf_spec, train_layout
     from jax.sharding import PartitionSpec as P
 
     assert train_layout(8, 8, 4, available=8) == TrainLayout(8, 1)  # default: every scene on one device
@@ -93,7 +93,7 @@ def test_layouts():
 ])
 def test_bad_device_counts_say_what_would(args, message):
     from rvggt_jax.model.forward import InputError
-    from rvggt_jax.parallel.train import train_layout
+    from rvggt_jax.train.sharded import train_layout
 
     with pytest.raises(InputError, match=message):
         train_layout(*args, available=8)
@@ -101,7 +101,7 @@ def test_bad_device_counts_say_what_would(args, message):
 
 def test_bad_accumulate_with_devices():
     from rvggt_jax.model.forward import InputError
-    from rvggt_jax.parallel.train import train_layout
+    from rvggt_jax.train.sharded import train_layout
 
     # 8 scenes in 4 micro-batches of 2: 4 devices on "data" do not divide them
     with pytest.raises(InputError, match=r"multiple of 4 scenes per micro-batch.*--batch a multiple of 16"):
@@ -131,3 +131,13 @@ def test_finetune_cli_devices():
     sub = next(a for a in parser._subparsers._group_actions[0].choices.items() if a[0] == "finetune")[1]
     text = " ".join(sub.format_help().split())
     assert 'mesh axes "data" x "frames"' in text, text
+
+
+def test_finetune_cli_bad_devices_is_one_line(tmp_path, capsys):
+    from rvggt_jax.app.cli import main
+
+    # (before the model loads: neither --weights nor --config is needed to be told)
+    assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o"), "--devices", "2", "--batch", "3"]) == 1
+    err = capsys.readouterr().err
+    assert "--devices 2 does not divide the batch" in err and "--batch a multiple of 2" in err, err
+    assert len(err.strip().splitlines()) == 1, err

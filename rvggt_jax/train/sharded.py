@@ -44,8 +44,7 @@ from jax.sharding import PartitionSpec as P
 
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model.forward import InputError, check_inputs, forward_frames
-from rvggt_jax.ops.shards import FRAMES_AXIS
-from rvggt_jax.parallel.sharded import frame_shards
+from rvggt_jax.parallel.sharded import FRAMES_AXIS, frame_shards
 from rvggt_jax.train.step import TrainConfig, TrainState, train_step_fn
 
 DATA_AXIS = "data"
