@@ -24,11 +24,11 @@ def add_finetune_parser(sub) -> None:
                         "time (the memory of batch/K scenes, the update of all of them); K must divide --batch")
     p.add_argument("--devices", type=int, default=1, metavar="N",
                    help="train over N local devices (default %(default)s), split into the mesh axes \"data\" x "
-                        "\"frames\": N / (--frames / --frames-per-device) device groups on \"data\" take the "
-                        "batch's scenes (it must divide --batch / --accumulate), the --frames / "
-                        "--frames-per-device devices of a group on \"frames\" share each scene's frames (the "
-                        "global attention around a ring, as `rvggt reconstruct --devices`)")
-    p.add_argument("--frames-per-device", type=int, default=None, metavar="K",
+                        "\"frames\": the --frames / F devices of a group on \"frames\" share each scene's frames "
+                        "(the global attention around a ring, as `rvggt reconstruct --devices`), the N / "
+                        "(--frames / F) groups on \"data\" take the batch's scenes (that count must divide "
+                        "--batch / --accumulate)")
+    p.add_argument("--frames-per-device", type=int, default=None, metavar="F",
                    help="frames of a scene on each device (it must divide --frames; default: all of them, i.e. "
                         "a \"frames\" axis of 1 and N devices on \"data\")")
     p.add_argument("--fsdp", action="store_true",
