@@ -12,7 +12,7 @@ from safetensors.numpy import load_file
 
 import rvggt_jax
 from tests.helpers.paths import REPO, TINY
-from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker
+from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker, stop_sharded_worker
 from tests.helpers.xla_flags import suite_flags
 
 # LLVM at -O0 for every program the suite compiles (tests/helpers/xla_flags.py: the same
@@ -63,17 +63,18 @@ def tiny():
 # workers) start.
 # ---------------------------------------------------------------------------------------
 
-SHARDED_TESTS = REPO / "tests" / "parallel" / "test_sharded.py"
+SHARDED_TESTS = tuple(REPO / "tests" / "parallel" / name for name in ("test_sharded.py", "test_sharded_train.py"))
 
 
 def _selects_sharded(config) -> bool:
-    """Whether the command line can run tests/parallel/test_sharded.py (by path; -k may
-    still deselect it, which only wastes the background run)."""
-    target = SHARDED_TESTS.resolve()
+    """Whether the command line can run a test file reading the worker's report
+    (SHARDED_TESTS, by path; -k may still deselect them, which only wastes the background
+    run)."""
+    targets = [t.resolve() for t in SHARDED_TESTS]
     args = [a.split("::")[0] for a in config.args] or [str(Path(__file__).parent)]
     for a in args:
         p = Path(a).resolve() if Path(a).is_absolute() else (Path(config.invocation_params.dir) / a).resolve()
-        if p == target or (p.is_dir() and p in target.parents):
+        if any(p == t or (p.is_dir() and p in t.parents) for t in targets):
             return True
     return False
 
@@ -96,9 +97,7 @@ def pytest_sessionstart(session):
 def pytest_sessionfinish(session, exitstatus):
     import os
 
-    proc = WORKER.get("proc")
-    if proc is not None and proc.poll() is None:
-        proc.kill()
+    stop_sharded_worker()
     if WORKER.get("owner"):
         os.environ.pop(SHARDED_DIR_ENV, None)
     if os.environ.get("RVGGT_TEST_XLA_CACHE_OWNER") == str(os.getpid()):

@@ -205,7 +205,7 @@ IMPORT_RULES = {
     "io": {"geometry"},
     "ba": {"geometry", "io"},
     "eval": {"geometry", "io", "model", "weights"},
-    "train": {"config", "geometry", "eval", "model", "synthetic", "weights"},
+    "train": {"config", "geometry", "eval", "model", "parallel", "synthetic", "weights"},
     "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},
     "examples_data": set(),
     "diagnostics": {"config", "compression", "model", "planning"},

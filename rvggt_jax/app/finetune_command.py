@@ -22,6 +22,18 @@ def add_finetune_parser(sub) -> None:
     p.add_argument("--accumulate", type=int, default=1, metavar="K",
                    help="gradient accumulation: each step's --batch scenes in K micro-batches of batch/K, one at a "
                         "time (the memory of batch/K scenes, the update of all of them); K must divide --batch")
+    p.add_argument("--devices", type=int, default=1, metavar="N",
+                   help="train over N local devices (default %(default)s), split into the mesh axes \"data\" x "
+                        "\"frames\": the --frames / F devices of a group on \"frames\" share each scene's frames "
+                        "(the global attention around a ring, as `rvggt reconstruct --devices`), the N / "
+                        "(--frames / F) groups on \"data\" take the batch's scenes (that count must divide "
+                        "--batch / --accumulate)")
+    p.add_argument("--frames-per-device", type=int, default=None, metavar="F",
+                   help="frames of a scene on each device (it must divide --frames; default: all of them, i.e. "
+                        "a \"frames\" axis of 1 and N devices on \"data\")")
+    p.add_argument("--fsdp", action="store_true",
+                   help="split the parameters and optimiser state over all N devices (FSDP) instead of a copy on "
+                        "each: for models whose state does not fit one device (docs/training.md)")
     p.add_argument("--lr", type=float, default=1e-5, help="peak learning rate (default %(default)s)")
     p.add_argument("--warmup", type=int, default=None, help="warm-up steps (default: 10%% of --steps, <= 500)")
     p.add_argument("--train", default="all",
@@ -57,12 +69,19 @@ def run_finetune_command(args) -> int:
     if preset_file:
         load_preset(preset_file)  # a bad file fails before the model loads
     opts = FinetuneOptions(steps=args.steps, frames=args.frames, size=(h, w), batch=args.batch,
-                           accumulate=args.accumulate,
+                           accumulate=args.accumulate, devices=args.devices,
+                           frames_per_device=args.frames_per_device, fsdp=args.fsdp,
                            learning_rate=args.lr, warmup_steps=args.warmup, train=train,
                            preset=None if preset_file else args.preset,
                            dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)
     if not Path(args.data_dir).is_dir():
         raise InputError(f"no such data folder: {args.data_dir}")
+    if opts.devices > 1 or opts.fsdp or opts.frames_per_device is not None:
+        from rvggt_jax.train.sharded import train_layout
+
+        # a layout that does not fit fails before the model loads (finetune checks it again)
+        train_layout(opts.devices, opts.batch, opts.frames, opts.frames_per_device, accumulate=opts.accumulate,
+                     fsdp=opts.fsdp)
     params, config = load_model(args.weights, args.config, args.seed)
     if preset_file:
         import dataclasses

@@ -7,6 +7,7 @@
     batch = train.stack([train.synthetic_example(8, (224, 294), seed=0)])
     state, metrics = step(state, batch)
 
+Over many devices (mesh "data" x "frames", FSDP): `train.sharded` (`make_sharded_train_step`).
 See docs/training.md. `rvggt finetune DATA_DIR --out DIR` runs `rvggt_jax.train.finetune` (module `rvggt_jax.train.loop`).
 Names resolve on first use (building the CLI parser imports no JAX).
 """
@@ -22,8 +23,10 @@ _LAZY = {
                                            "make_optimizer", "make_train_step", "param_labels", "restore_state",
                                            "save_state", "schedule")},
     **{n: "rvggt_jax.train.loop" for n in ("FinetuneOptions", "finetune", "load_model")},
+    **{n: "rvggt_jax.train.sharded" for n in ("TrainLayout", "make_sharded_train_step", "place_batch", "place_state",
+                                              "train_layout", "train_mesh")},
 }
-_SUBMODULES = ("data", "losses", "step", "loop", "cli")
+_SUBMODULES = ("data", "losses", "step", "loop", "sharded", "cli")
 __all__ = sorted(_LAZY)
 
 

@@ -34,6 +34,11 @@ class FinetuneOptions:
     size: tuple[int, int] = (224, 294)
     batch: int = 1
     accumulate: int = 1  # micro-batches per step: `batch` scenes, `batch / accumulate` at a time
+    # over many devices (rvggt_jax.train.sharded): mesh "data" x "frames", frames / frames_per_device
+    # devices per scene; fsdp: the train state split over all of them
+    devices: int = 1
+    frames_per_device: int | None = None
+    fsdp: bool = False
     learning_rate: float = 1e-5
     warmup_steps: int | None = None  # default: 10% of the steps, at most 500
     train: str | tuple[str, ...] = "all"
@@ -69,6 +74,12 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
         divisors = [k for k in range(1, opts.batch + 1) if opts.batch % k == 0]
         raise InputError(f"--accumulate {opts.accumulate} must divide --batch {opts.batch} (micro-batches of "
                          f"batch / accumulate scenes): --batch {opts.batch} takes --accumulate in {divisors}")
+    layout = None
+    if opts.devices > 1 or opts.fsdp or opts.frames_per_device is not None:  # (checked before reading data)
+        from rvggt_jax.train.sharded import train_layout
+
+        layout = train_layout(opts.devices, opts.batch, opts.frames, opts.frames_per_device,
+                              accumulate=opts.accumulate, fsdp=opts.fsdp)
     scenes = data_mod.folder_scenes(data_dir)
     usable = [s for s in scenes if len(s) >= opts.frames]
     if not usable:
@@ -86,7 +97,14 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     if start is not None:
         state = restore_state(out, state)
         log(f"resuming from step {start} in {out}")
-    step_fn = make_train_step(config, tc)
+    step_fn, place = make_train_step(config, tc), (lambda b: b)
+    if layout is not None:
+        from rvggt_jax.train import sharded as multi
+
+        mesh = multi.train_mesh(layout)
+        step_fn = multi.make_sharded_train_step(config, tc, mesh, fsdp=layout.fsdp)
+        state, place = multi.place_state(state, mesh, layout.fsdp), (lambda b: multi.place_batch(b, mesh))
+        log(f"training on {layout.describe()}")
     rng = np.random.default_rng(opts.seed + int(state.step))  # a resumed run draws new batches
 
     def example(r):
@@ -97,7 +115,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     with open(out / "log.jsonl", "a") as logf:
         for i in range(int(state.step), opts.steps):
             batch = data_mod.stack([example(rng) for _ in range(opts.batch)])
-            state, metrics = step_fn(state, batch)
+            state, metrics = step_fn(state, place(batch))
             if (i + 1) % opts.log_every == 0 or i + 1 == opts.steps or i == 0:
                 m = {k: float(v) for k, v in jax.device_get(metrics).items()}
                 logf.write(json.dumps({"step": i + 1, **m}) + "\n")

@@ -149,11 +149,22 @@ def _query_points(batch: dict) -> jax.Array | None:
     return batch["tracks"][:, 0] if "tracks" in batch else None
 
 
-def loss_fn(params: Any, batch: dict, config: VGGTConfig, loss_cfg: LossConfig) -> tuple[jax.Array, dict]:
-    """(objective, parts) of `rvggt_forward(params, batch["images"], config)` on a batch."""
+# (params, images [B, S, 3, H, W], query points [B, N, 2] or None) -> `rvggt_forward`'s
+# outputs: the forward a train step differentiates (None: `rvggt_forward` on one device;
+# `rvggt_jax.train.sharded` passes one split over a mesh)
+Forward = Callable[[Any, jax.Array, "jax.Array | None"], dict]
+
+
+def loss_fn(params: Any, batch: dict, config: VGGTConfig, loss_cfg: LossConfig, forward: Forward | None = None
+            ) -> tuple[jax.Array, dict]:
+    """(objective, parts) of `rvggt_forward(params, batch["images"], config)` (or of
+    `forward(params, images, query_points)`) on a batch."""
     from rvggt_jax.model.forward import rvggt_forward
 
-    out = rvggt_forward(params, batch["images"], config, _query_points(batch))
+    if forward is None:
+        out = rvggt_forward(params, batch["images"], config, _query_points(batch))
+    else:
+        out = forward(params, batch["images"], _query_points(batch))
     return vggt_loss(out, batch, loss_cfg)
 
 
@@ -169,10 +180,11 @@ def frozen_as_constants(params: Any, labels: Any) -> Any:
     return jax.tree.map(lambda p, lab: p if lab == TRAIN else jax.lax.stop_gradient(p), params, labels)
 
 
-def trainable_loss(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig) -> tuple[jax.Array, dict]:
+def trainable_loss(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig, forward: Forward | None = None
+                   ) -> tuple[jax.Array, dict]:
     """`loss_fn` with the parameters `tc.train` freezes as constants (`frozen_as_constants`):
     the function the train step differentiates."""
-    return loss_fn(frozen_as_constants(params, param_labels(params, tc.train)), batch, config, tc.loss)
+    return loss_fn(frozen_as_constants(params, param_labels(params, tc.train)), batch, config, tc.loss, forward)
 
 
 def micro_batches(batch: dict, accumulate: int) -> dict:
@@ -186,8 +198,8 @@ def micro_batches(batch: dict, accumulate: int) -> dict:
     return jax.tree.map(lambda x: x.reshape((accumulate, b // accumulate) + x.shape[1:]), batch)
 
 
-def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig
-                               ) -> tuple[tuple[jax.Array, dict], Any]:
+def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig,
+                               forward: Forward | None = None) -> tuple[tuple[jax.Array, dict], Any]:
     """`jax.value_and_grad(loss_fn, has_aux=True)(params, batch, ...)` over
     `tc.accumulate` micro-batches: a `lax.scan` holding one micro-batch's forward and
     backward at a time, gradients summed in float32 (returned in the parameters'
@@ -206,7 +218,7 @@ def accumulated_value_and_grad(params: Any, batch: dict, config: VGGTConfig, tc:
 
     def one(acc, mb):
         with shared_denominators(totals):
-            (loss, parts), grads = jax.value_and_grad(trainable_loss, has_aux=True)(params, mb, config, tc)
+            (loss, parts), grads = jax.value_and_grad(trainable_loss, has_aux=True)(params, mb, config, tc, forward)
         return jax.tree.map(lambda a, x: a + x.astype(jnp.float32), acc, (loss, parts, grads)), None
 
     # float32 sums of the loss, its parts (shapes: a forward trace) and the gradient (the params')
@@ -225,7 +237,15 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
     micro-batches, one at a time (`accumulated_value_and_grad`), one update. metrics:
     every loss part (of the whole batch), "grad_norm" (trained leaves, before
     clipping) and "lr" (the rate this step used). `donate`: the input state's buffers are
-    reused for the output (do not use a state after passing it)."""
+    reused for the output (do not use a state after passing it). Over many devices:
+    `rvggt_jax.train.sharded.make_sharded_train_step`."""
+    return jax.jit(train_step_fn(config, tc), donate_argnums=(0,) if donate else ())
+
+
+def train_step_fn(config: VGGTConfig, tc: TrainConfig, forward: Forward | None = None
+                  ) -> Callable[[TrainState, dict], tuple[TrainState, dict]]:
+    """The function `make_train_step` jits (not jitted), its forward `forward` (default
+    `rvggt_forward`)."""
     tc.validate()
     config.validate()
 
@@ -235,9 +255,10 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
         # their cotangents, and any backward pass or residual that only they need (the
         # aggregator's when training heads), are never formed
         if tc.accumulate == 1:
-            (loss, parts), grads = jax.value_and_grad(trainable_loss, has_aux=True)(state.params, batch, config, tc)
+            (loss, parts), grads = jax.value_and_grad(trainable_loss, has_aux=True)(state.params, batch, config, tc,
+                                                                                    forward)
         else:
-            (loss, parts), grads = accumulated_value_and_grad(state.params, batch, config, tc)
+            (loss, parts), grads = accumulated_value_and_grad(state.params, batch, config, tc, forward)
         trained = jax.tree.map(lambda g, lab: g if lab == TRAIN else jnp.zeros((), g.dtype), grads, labels)
         tx = make_optimizer(tc, state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -246,7 +267,7 @@ def make_train_step(config: VGGTConfig, tc: TrainConfig, *, donate: bool = True
         metrics = dict(parts, grad_norm=grad_norm, lr=schedule(tc)(state.step))
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
-    return jax.jit(step, donate_argnums=(0,) if donate else ())
+    return step
 
 
 # ---------------------------------------------------------------------------------------

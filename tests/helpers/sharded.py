@@ -31,7 +31,22 @@ def start_sharded_worker(where: Path) -> None:
                 "open(rc + '.tmp', 'w').write(str(r.returncode)); __import__('os').replace(rc + '.tmp', rc)")
     WORKER["proc"] = subprocess.Popen(
         [sys.executable, "-c", launcher, str(WORKER_SCRIPT),
-         str(where / "out.json"), str(where / "err.txt"), str(where / "rc")], env=env)
+         str(where / "out.json"), str(where / "err.txt"), str(where / "rc")], env=env,
+        start_new_session=True)  # (a process group of its own: stop_sharded_worker ends the worker too)
+
+
+def stop_sharded_worker() -> None:
+    """End the worker if it still runs (the launcher and the worker it started: killing
+    the launcher alone left the worker computing after the session)."""
+    import signal
+
+    proc = WORKER.get("proc")
+    if proc is not None and proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
 
 
 def sharded_worker_result(timeout: float = 1800) -> tuple[int, str, str]:

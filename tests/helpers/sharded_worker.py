@@ -1,4 +1,5 @@
-"""The sharded-forward checks, run by tests/parallel/test_sharded.py in a subprocess of its own:
+"""The sharded-forward and sharded-train-step checks, run by tests/parallel/test_sharded.py and
+tests/parallel/test_sharded_train.py in a subprocess of their own:
 XLA's host platform has to be told to make 4 CPU devices before JAX starts.
 
 Prints one JSON object: per check, the measured errors and facts the test asserts on.
@@ -79,6 +80,83 @@ def ring_gradient() -> dict:
     permutes = {what: jax.jit(fn).lower(*args).as_text().count("collective_permute")
                 for what, fn in (("forward", ring), ("gradient", jax.grad(ring, range(7))))}
     return {"errors": errors, "permutes": permutes}
+
+
+def train_steps() -> dict:
+    """One train step (forward, loss, gradient, clipping, AdamW) over 4 devices of
+    `rvggt_jax.train.sharded` against `make_train_step` on one device: the micro layout at
+    its smallest (2 layers, width 32; camera and depth heads), 4 scenes of 2 frames of
+    28 x 42 whose depth masks differ (the loss's means must be the whole batch's). One
+    layout holds all three splits (each compiled step costs ~50 s here): the scenes over
+    "data" (2), each scene's frames around a ring of 2 ("frames"), the parameters and
+    AdamW's moments split 4 ways (FSDP). The relative error of every metric; of the gradient (AdamW's
+    first moment is 0.1 g; max error over the largest gradient); of the parameters after
+    the step (per leaf, over its largest value) and of the update (in units of the
+    learning rate), both where the gradient is above AdamW's noise floor
+    (tests/train/test_accumulate.py: where |g| is ~1e-9 AdamW's first step amplifies
+    rounding to a fraction of lr); how many state leaves are split (FSDP); and the
+    refused layouts' messages."""
+    from rvggt_jax import train
+    from rvggt_jax.config import CameraHeadConfig, DPTHeadConfig
+    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.train.sharded import (make_sharded_train_step, place_batch, place_state, train_layout,
+                                          train_mesh)
+    from tests.helpers.micro import micro_config
+
+    config = micro_config(depth=2, enable_point=False, enable_track=False,
+                          camera_head=CameraHeadConfig(num_heads=2, trunk_depth=1, iters=1),
+                          dpt_head=DPTHeadConfig(features=8, out_channels=(4, 8, 16, 16),
+                                                 intermediate_layer_idx=(0, 1, 1, 1)))
+    scenes, frames, noise = 4, 2, 1e-6
+    examples = []
+    for i in range(scenes):
+        ex = dict(train.synthetic_example(frames, (28, 42), seed=i))
+        mask = np.array(ex["point_mask"])
+        mask[:, : 3 * (i % 3 + 1)] = False  # different counts of valid pixels per scene
+        ex["point_mask"], ex["depth"] = mask, np.where(mask, ex["depth"], 0.0)
+        examples.append(ex)
+    batch = train.stack(examples)
+    tc = train.TrainConfig(learning_rate=1e-3, warmup_steps=0, total_steps=10)
+    params = rvggt_jax.init_params(config, 0)
+    state0 = train.init_state(params, tc)
+    ref, ref_metrics = train.make_train_step(config, tc, donate=False)(state0, jax.device_put(batch))
+
+    def mu(state):  # AdamW's first moment after one step: 0.1 x the (clipped) gradient
+        return jax.tree.leaves(state.opt_state.inner_states["train"].inner_state[1][0].mu)
+
+    g_ref = [np.asarray(g, np.float64) / 0.1 for g in mu(ref)]
+    scale = max(np.abs(g).max() for g in g_ref)
+    out: dict = {}
+    for name, fpd, fsdp in (("data_frames_fsdp", 1, True),):
+        layout = train_layout(4, scenes, frames, fpd, fsdp=fsdp)
+        mesh = train_mesh(layout)
+        step = make_sharded_train_step(config, tc, mesh, fsdp=fsdp, donate=False)
+        got, metrics = step(place_state(state0, mesh, fsdp), place_batch(batch, mesh))
+        grad = max(float(np.abs(np.asarray(g, np.float64) / 0.1 - r).max()) for g, r in zip(mu(got), g_ref)) / scale
+        update, params_rel = 0.0, 0.0
+        for p0, a, b, r in zip(jax.tree.leaves(params), jax.tree.leaves(got.params), jax.tree.leaves(ref.params),
+                               g_ref):
+            a, b, p0 = (np.asarray(x, np.float64) for x in (a, b, p0))
+            signal = np.abs(r) > noise
+            params_rel = max(params_rel, float(np.abs(a - b)[signal].max(initial=0.0) / max(np.abs(b).max(), 1e-12)))
+            err = np.abs((a - p0) - (b - p0)) - np.spacing(np.abs(b).astype(np.float32)).astype(np.float64)
+            update = max(update, float(err[signal].max(initial=0.0)) / tc.learning_rate)
+        leaves = jax.tree.leaves(got)
+        out[name] = {"mesh": dict(mesh.shape), "step": int(got.step),
+                     "metrics": {k: rel(metrics[k], ref_metrics[k]) for k in ref_metrics},
+                     "grad": grad, "update": update, "params": params_rel,
+                     "split_leaves": sum(not a.sharding.is_fully_replicated for a in leaves),
+                     "leaves": len(leaves)}
+    # refused layouts: the message says what would work
+    refused = {}
+    for name, args in (("batch", (4, 2, 4, None)), ("frames", (4, 4, 4, 3)), ("too_many", (8, 8, 4, None))):
+        try:
+            train_layout(*args)
+            refused[name] = "accepted"
+        except InputError as e:
+            refused[name] = str(e)
+    out["refused"] = refused
+    return out
 
 
 def main() -> None:
@@ -208,11 +286,15 @@ def main() -> None:
         report["no_frames_axis"] = str(e)
     report["ring_gradient"] = ring_gradient()
     tick("ring gradient")
+    report["train_steps"] = train_steps()
+    tick("train steps")
     json.dump(report, sys.stdout)
 
 
 if __name__ == "__main__":
     if sys.argv[1:] == ["ring_gradient"]:  # that check alone (development)
         json.dump(ring_gradient(), sys.stdout)
+    elif sys.argv[1:] == ["train_steps"]:
+        json.dump(train_steps(), sys.stdout)
     else:
         main()
