@@ -130,7 +130,8 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     """Train `params` on the scenes of `data_dir` for `opts.steps` steps (resuming from
     `out` when it holds a train state; stopping early at `opts.stop_at`); returns
     OUT/model (written when the run reaches `opts.steps`, else OUT/state's newest step).
-    `progress`: a tqdm bar on stderr."""
+    `progress`: a tqdm bar on stderr. The train step donates its state: `params`' device
+    buffers are reused by the first step (pass a copy to keep them)."""
     out = Path(out)
     if opts.steps < 1 or opts.batch < 1:
         raise InputError(f"steps and batch must be >= 1; got {opts.steps}, {opts.batch}")
@@ -157,6 +158,10 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     if start is not None:
         state = restore_state(out, state)
         log(f"resuming from step {start} in {out}")
+    # every leaf a jax.Array committed to the device: the state a step returns is, and a
+    # fresh one (numpy or uncommitted parameters) or a restored one must have the same
+    # signature, or jit compiles the step again for it
+    state = jax.device_put(state, jax.devices()[0])
     start = int(state.step)
     stop = min(opts.steps, opts.stop_at) if opts.stop_at is not None else opts.steps
     step_fn = BucketedStep(cached_train_step(config, tc), opts.batch, buckets, opts.size, log)

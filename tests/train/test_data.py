@@ -142,3 +142,15 @@ def test_loss_plot(tmp_path):
     assert a.shape == (360, 640, 3)
     assert ((a[..., 2] > 150) & (a[..., 0] < 80)).sum() > 200  # the blue curve is drawn
     assert plot_loss([], tmp_path / "none.png") is None
+
+
+def test_finetune_cli_takes_frame_ranges_buckets_and_formats(tmp_path, capsys):
+    from rvggt_jax.app.cli import build_parser, main
+
+    a = build_parser().parse_args(["finetune", "d", "--out", "o", "--frames", "2-8", "--buckets", "2,4,8",
+                                   "--format", "co3d", "--require-depth", "--stop-at", "5"])
+    assert (a.frames, a.buckets, a.data_format, a.require_depth, a.stop_at) == ("2-8", "2,4,8", "co3d", True, 5)
+    d = build_parser().parse_args(["finetune", "d", "--out", "o"])
+    assert (d.frames, d.buckets, d.data_format) == ("2-24", None, "auto")
+    assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o"), "--frames", "2-x"]) == 1
+    assert "--frames must be N or MIN-MAX" in capsys.readouterr().err
