@@ -19,6 +19,13 @@ An *example* is a dict of numpy arrays for S frames at the network size H x W (s
 intrinsics follow), depth by nearest neighbour, and the scene is normalised as upstream
 trains: cameras relative to frame 0 (its extrinsic becomes [I | 0]) and every length
 divided by the mean distance of the valid points from frame 0's camera.
+
+**Other formats**: `open_scenes(DATA_DIR, fmt)` reads every format of
+`rvggt_jax.eval.datasets` as training data (folder, co3d, scannet, 7scenes, nrgbd, dtu, and
+colmap = the T&T reader), "auto" detecting it (`TRAIN_FORMATS`, in order). **Batches**:
+`step_batch(scenes, step, seed, ...)` is step `step`'s batch, a function of (seed, step)
+only (exact resume): a random frame count in a range rounded down to a compiled bucket
+(`draw_batch_plan`), read from the files then (`BatchStream` reads ahead in a thread).
 """
 
 from __future__ import annotations
