@@ -34,8 +34,8 @@ Conventions (PyTorch3D's cameras, which CO3D stores):
   depth mask is 0.
 
 Scenes are named `<category>/<sequence>` (or `<sequence>` when ROOT is one category
-folder), frames ordered by frame_number. Frames without depth annotations make the
-scene depth-less only if none of its frames has depth.
+folder), frames ordered by frame_number. A sequence none of whose frames has a depth
+annotation has no depth; one where only some lack it is an error naming the frame.
 """
 
 from __future__ import annotations
