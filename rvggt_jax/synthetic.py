@@ -262,7 +262,7 @@ def make_scene(frames: int = 6, height: int = 60, width: int = 80, seed: int = 0
 
 def write_scene(scene: SyntheticScene, fmt: str, root: str | Path) -> Path:
     """Store `scene` under `root` in the on-disk format `fmt` (a name of
-    `rvggt_jax.eval.datasets.FORMATS`: 7scenes, nrgbd, scannet, tnt, dtu, folder);
+    `rvggt_jax.eval.datasets.FORMATS`: 7scenes, nrgbd, scannet, tnt, dtu, folder, co3d);
     returns the scene's folder."""
     from rvggt_jax.eval.datasets import get_format
 

@@ -8,15 +8,28 @@ from pathlib import Path
 
 def add_finetune_parser(sub) -> None:
     """The `rvggt finetune` subcommand."""
-    p = sub.add_parser("finetune", help="fine-tune on a folder of images + cameras (+ depth)",
-                       description="Fine-tune VGGT with optax (AdamW, warm-up + cosine, clipping) on "
-                                   "DATA_DIR/<scene>/{images/, cameras.json, depth/}; see docs/training.md.")
+    p = sub.add_parser("finetune", help="fine-tune on scenes with cameras (+ depth): folder, CO3D, ScanNet, ...",
+                       description="Fine-tune VGGT with optax (AdamW, warm-up + cosine, clipping) on the scenes of "
+                                   "DATA_DIR in any format the evaluation reads (a folder of "
+                                   "<scene>/{images/, cameras.json, depth/}, CO3D v2, ScanNet, 7 Scenes, NRGBD, DTU, "
+                                   "COLMAP), a random frame count per step; see docs/training.md.")
     p.add_argument("data_dir", metavar="DATA_DIR")
+    # (the names of rvggt_jax.train.data.TRAIN_FORMATS: building the parser imports no JAX)
+    p.add_argument("--format", default="auto", dest="data_format",
+                   choices=("auto", "folder", "co3d", "scannet", "7scenes", "nrgbd", "dtu", "colmap"),
+                   help="DATA_DIR's layout (default: auto, the first format whose files are found, in this order)")
+    p.add_argument("--require-depth", action="store_true",
+                   help="a scene without depth maps is an error naming the file expected (default: camera loss only)")
     p.add_argument("--out", required=True, help="output folder (train state, log, fine-tuned model); resumes")
     p.add_argument("--weights", default=None, help="checkpoint to start from (folder, .safetensors or hub id)")
     p.add_argument("--config", default=None, help="config.json for a randomly initialised model (no --weights)")
     p.add_argument("--steps", type=int, default=1000)
-    p.add_argument("--frames", type=int, default=8, help="frames per sequence (default %(default)s)")
+    p.add_argument("--frames", default="2-24", metavar="N|MIN-MAX",
+                   help="frames per scene: a count, or a range drawn at random every step (default %(default)s, "
+                        "upstream's)")
+    p.add_argument("--buckets", default=None, metavar="N,N,...",
+                   help="the frame counts compiled (a drawn count is rounded down to one; default: the range's ends "
+                        "and the powers of two between, 2,4,8,16,24)")
     p.add_argument("--size", default="224x294", help="network input HxW, multiples of 14 (default %(default)s)")
     p.add_argument("--batch", type=int, default=1, help="scenes per step (default %(default)s)")
     p.add_argument("--accumulate", type=int, default=1, metavar="K",
@@ -48,6 +61,8 @@ def add_finetune_parser(sub) -> None:
                         "'layers' the aggregator layers and DINO blocks only; 'dots' keeps their matmul outputs "
                         "(docs/training.md, \"Memory\"; default %(default)s)")
     p.add_argument("--save-every", type=int, default=500)
+    p.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+                   help="stop after this step (state saved; a rerun with the same --out continues exactly)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
 
@@ -55,12 +70,19 @@ def add_finetune_parser(sub) -> None:
 def run_finetune_command(args) -> int:
     """`rvggt finetune` from parsed arguments."""
     from rvggt_jax.model.forward import InputError
-    from rvggt_jax.train.loop import FinetuneOptions, finetune, load_model
+    from rvggt_jax.train.loop import FinetuneOptions, device_layout, finetune, load_model
 
     try:
         h, w = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise InputError(f"--size must be HxW, e.g. 224x294; got {args.size!r}") from None
+    try:
+        lo, _, hi = args.frames.partition("-")
+        frames = (int(lo), int(hi)) if hi else int(lo)
+        buckets = tuple(int(b) for b in args.buckets.split(",") if b.strip()) if args.buckets else None
+    except ValueError:
+        raise InputError(f"--frames must be N or MIN-MAX and --buckets N,N,...; got {args.frames!r}, "
+                         f"{args.buckets!r}") from None
     train = args.train if args.train in ("all", "heads") else tuple(t for t in args.train.split(",") if t)
     # a preset file is applied here (the train loop takes preset names)
     from rvggt_jax.diagnostics.presets_io import is_preset_path, load_preset, resolve_preset
@@ -68,7 +90,8 @@ def run_finetune_command(args) -> int:
     preset_file = args.preset if args.preset and is_preset_path(args.preset) else None
     if preset_file:
         load_preset(preset_file)  # a bad file fails before the model loads
-    opts = FinetuneOptions(steps=args.steps, frames=args.frames, size=(h, w), batch=args.batch,
+    opts = FinetuneOptions(steps=args.steps, frames=frames, buckets=buckets, size=(h, w), batch=args.batch,
+                           data_format=args.data_format, require_depth=args.require_depth, stop_at=args.stop_at,
                            accumulate=args.accumulate, devices=args.devices,
                            frames_per_device=args.frames_per_device, fsdp=args.fsdp,
                            learning_rate=args.lr, warmup_steps=args.warmup, train=train,
@@ -76,16 +99,12 @@ def run_finetune_command(args) -> int:
                            dtype=args.dtype, remat=args.remat, save_every=args.save_every, seed=args.seed)
     if not Path(args.data_dir).is_dir():
         raise InputError(f"no such data folder: {args.data_dir}")
-    if opts.devices > 1 or opts.fsdp or opts.frames_per_device is not None:
-        from rvggt_jax.train.sharded import train_layout
-
-        # a layout that does not fit fails before the model loads (finetune checks it again)
-        train_layout(opts.devices, opts.batch, opts.frames, opts.frames_per_device, accumulate=opts.accumulate,
-                     fsdp=opts.fsdp)
+    device_layout(opts)  # a layout that does not fit fails before the model loads
     params, config = load_model(args.weights, args.config, args.seed)
     if preset_file:
         import dataclasses
 
         config = dataclasses.replace(config, compression=resolve_preset(preset_file, config.depth))
-    finetune(args.data_dir, args.out, params, config, opts, log=(lambda s: None) if args.quiet else print)
+    finetune(args.data_dir, args.out, params, config, opts, log=(lambda s: None) if args.quiet else print,
+             progress=not args.quiet)
     return 0

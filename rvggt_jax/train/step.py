@@ -114,13 +114,29 @@ def param_labels(params: Any, train: str | tuple[str, ...]) -> Any:
     paths = [_path_str(p) for p, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
     for pre in prefixes:
         if pre and not any(p == pre or p.startswith(pre + "/") for p in paths):
-            raise ValueError(f"train prefix {pre!r} matches no parameter (top level: {sorted(params)})")
+            raise ValueError(f"train prefix {pre!r} matches no parameter; nearest parameter paths: "
+                             f"{', '.join(nearest_paths(pre, paths)) or '(none)'} (top level: {sorted(params)})")
 
     def label(path, _):
         s = _path_str(path)
         return TRAIN if any(not pre or s == pre or s.startswith(pre + "/") for pre in prefixes) else FROZEN
 
     return jax.tree_util.tree_map_with_path(label, params)
+
+
+def nearest_paths(prefix: str, paths: list[str], n: int = 5) -> list[str]:
+    """The `n` parameter paths or path prefixes ('/'-joined, e.g. "aggregator/frame_blocks")
+    closest to `prefix` (difflib's ratio), for an error on a prefix that matches nothing.
+    A prefix with as many '/'-separated parts as `prefix` is compared first (a typo in a
+    short prefix finds the short prefix it meant, not a long leaf path)."""
+    import difflib
+
+    cands = {"/".join(p.split("/")[:k]) for p in paths for k in range(1, p.count("/") + 2)}
+    depth = prefix.count("/")
+    same = sorted(c for c in cands if c.count("/") == depth)
+    near = difflib.get_close_matches(prefix, same, n=n, cutoff=0.5)
+    rest = difflib.get_close_matches(prefix, sorted(cands - set(near)), n=n, cutoff=0.5)
+    return (near + rest)[:n]
 
 
 def schedule(tc: TrainConfig) -> optax.Schedule:

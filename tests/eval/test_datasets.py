@@ -36,7 +36,7 @@ def test_reader_round_trip(fmt, scene, written):
     assert all(p.is_file() for p in sc.image_paths)
     imgs, _ = network_images(sc.image_paths, W)
     assert imgs.shape == (5, 3, H, W)
-    lossless = fmt not in ("scannet", "tnt", "dtu")  # those store JPEG frames
+    lossless = fmt not in ("scannet", "tnt", "dtu", "co3d")  # those store JPEG frames
     err = np.abs(imgs.transpose(0, 2, 3, 1) * 255 - scene.images).mean()
     assert err < (0.5 if lossless else 8.0)  # JPEG on a 56x42 checkerboard: a few levels
     if fmt == "images":
@@ -49,6 +49,10 @@ def test_reader_round_trip(fmt, scene, written):
         tol = 0 if fmt == "folder" else 0.5e-3 + 1e-6  # 16-bit millimetres
         for i in range(5):
             np.testing.assert_allclose(sc.depth(i), scene.depth[i], atol=tol)
+    if fmt == "co3d":  # float16 depth (11 significant bits) x its scale adjustment
+        assert sc.has_depth
+        for i in range(5):
+            np.testing.assert_allclose(sc.depth(i), scene.depth[i], rtol=1e-3)
     if fmt in ("scannet", "dtu", "folder"):
         np.testing.assert_allclose(sc.gt_points(), scene.cloud()[0], atol=1e-6)  # float32 PLY
 
@@ -188,3 +192,63 @@ def test_protocol_sees_a_perturbation(scene, written):
     assert against_reference(ref, ref)["chamfer"] == pytest.approx(0.0, abs=1e-9)
     other = dict(ref, depth=ref["depth"] * 1.1)
     assert against_reference(other, ref)["abs_rel"] == pytest.approx(0.1, rel=1e-5)
+
+
+def test_co3d_cameras_project_as_pytorch3d(tmp_path):
+    """CO3D's PyTorch3D cameras, projected by PyTorch3D's formulas (row-vector R, T; NDC
+    +x left, +y up, isotropic scale min(W, H) / 2, pixel edges at integers), land where
+    the reader's OpenCV extrinsic and pixel-centre intrinsics put them; depth is the
+    float16 bits x scale_adjustment, masked."""
+    import gzip
+    import json
+
+    from PIL import Image
+
+    from rvggt_jax.eval.datasets import co3d
+
+    h, w = 30, 50
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    r = q * np.sign(np.linalg.det(q))
+    t = np.array([0.1, -0.2, 3.0])
+    f, p = np.array([1.7, 1.6]), np.array([0.05, -0.1])
+    x = rng.normal(size=(5, 3)) * 0.3
+    cam = x @ r + t  # PyTorch3D: +X left, +Y up
+    ndc = f * cam[:, :2] / cam[:, 2:] + p
+    s = min(w, h) / 2
+    px_edges = np.stack([w / 2 - ndc[:, 0] * s, h / 2 - ndc[:, 1] * s], 1)
+    ext = co3d.viewpoint_to_opencv(r, t)
+    k = co3d.ndc_to_pixels(f, p, (h, w))
+    uvz = (x @ ext[:, :3].T + ext[:, 3]) @ k.T
+    np.testing.assert_allclose(uvz[:, :2] / uvz[:, 2:], px_edges - 0.5, atol=1e-9)
+    np.testing.assert_allclose(uvz[:, 2], cam[:, 2], atol=1e-12)  # the same depth
+    # the files: one category, one sequence of 2 frames, the second without a depth file
+    seq = tmp_path / "cat" / "seq1"
+    for sub in ("images", "depths", "depth_masks"):
+        (seq / sub).mkdir(parents=True)
+    depth = np.full((h, w), 2.5, np.float16)
+    frames = []
+    for i in (1, 2):
+        Image.fromarray(np.zeros((h, w, 3), np.uint8)).save(seq / "images" / f"frame{i:06d}.jpg")
+        frames.append({"sequence_name": "seq1", "frame_number": i, "image": {"path": f"cat/seq1/images/frame{i:06d}.jpg",
+                                                                           "size": [h, w]},
+                       "depth": {"path": f"cat/seq1/depths/frame{i:06d}.jpg.geometric.png", "scale_adjustment": 2.0,
+                                 "mask_path": f"cat/seq1/depth_masks/frame{i:06d}.png"},
+                       "viewpoint": {"R": r.tolist(), "T": t.tolist(), "focal_length": f.tolist(),
+                                     "principal_point": p.tolist(), "intrinsics_format": "ndc_isotropic"}})
+    Image.fromarray(depth.view(np.uint16)).save(seq / "depths" / "frame000001.jpg.geometric.png")
+    mask = np.full((h, w), 255, np.uint8)
+    mask[:, :10] = 0
+    Image.fromarray(mask).save(seq / "depth_masks" / "frame000001.png")
+    with gzip.open(tmp_path / "cat" / "frame_annotations.jgz", "wt") as fh:
+        json.dump(frames[::-1], fh)  # any order: frames sorted by number
+    (sc,) = load_scenes("co3d", tmp_path)
+    assert sc.name == "cat/seq1" and sc.frame_ids == ["1", "2"]
+    np.testing.assert_allclose(sc.extrinsics[0], ext)
+    np.testing.assert_allclose(sc.intrinsics[1], k)
+    d = sc.depth(0)
+    assert (d[:, :10] == 0).all() and (d[:, 10:] == 5.0).all()
+    with pytest.raises(DatasetError, match="frame000002.jpg.geometric.png"):
+        sc.depth(1)
+    (sc,) = load_scenes("co3d", tmp_path / "cat")  # a category folder as the root
+    assert sc.name == "seq1"

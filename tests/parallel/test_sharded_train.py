@@ -141,3 +141,17 @@ def test_finetune_cli_bad_devices_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--devices 2 does not divide the batch" in err and "--batch a multiple of 2" in err, err
     assert len(err.strip().splitlines()) == 1, err
+
+
+def test_a_frame_split_needs_one_frame_count():
+    """`rvggt finetune --frames 2-8 --frames-per-device K`: the frame axis would change
+    size between buckets, so it is refused naming the fix; without a frame split a range
+    is fine (the scenes go over the devices)."""
+    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.train.loop import FinetuneOptions, device_layout
+    from rvggt_jax.train.sharded import TrainLayout
+
+    with pytest.raises(InputError, match=r"--frames-per-device splits a fixed frame count.*\[2, 4, 8\].*--frames N"):
+        device_layout(FinetuneOptions(frames=(2, 8), batch=2, devices=2, frames_per_device=1))
+    assert device_layout(FinetuneOptions(frames=(2, 8), batch=2, fsdp=True)) == TrainLayout(1, 1, True)
+    assert device_layout(FinetuneOptions(frames=(2, 8), batch=2)) is None

@@ -1,6 +1,7 @@
 """Fine-tuning: the loss decreases on synthetic scenes, a run resumed from an Orbax
 checkpoint continues exactly, frozen parameters stay bit-equal, remat changes XLA's
-memory plan and not the values; the losses and the data reader on their own."""
+memory plan and not the values; the losses and the data reader on their own;
+`train.finetune` on a data folder (frame buckets, exact resume)."""
 
 from __future__ import annotations
 
@@ -11,13 +12,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from PIL import Image
 
 import rvggt_jax
 from rvggt_jax import train
 from rvggt_jax.config import REMAT_POLICIES, DinoConfig
 from rvggt_jax.model.forward import rvggt_forward
 from rvggt_jax.synthetic import make_scene, write_scene
-from tests.helpers.micro import micro_config
+from tests.helpers.micro import micro_config, plan_config
 
 SIZE = (28, 42)
 FRAMES = 3
@@ -277,3 +279,55 @@ def test_finetune_cli_errors_are_one_line(tmp_path, capsys):
     assert "--size must be HxW" in capsys.readouterr().err
     assert main(["finetune", str(tmp_path), "--out", str(tmp_path / "o")]) == 1  # neither weights nor config
     assert "--weights" in capsys.readouterr().err
+
+
+# ---- train.finetune on a data folder: frame buckets, exact resume -----------------------
+
+# steps 0-3 of seed 1 draw 2, 3, 3, 2 frames (asserted below): both buckets before and after the stop
+FT_OPTS = train.FinetuneOptions(steps=STEPS, frames=(2, FRAMES), buckets=(2, FRAMES), size=SIZE, learning_rate=1e-3,
+                                warmup_steps=5, save_every=100, log_every=1, seed=1, prefetch=1, stop_at=4)
+
+
+@pytest.fixture(scope="module")
+def finetuned(tmp_path_factory):
+    """`train.finetune` of the smallest layout (2 layers, the camera head only: its two
+    programs compile fastest) on two 4-frame scenes: 4 steps at once, and 2 steps, stop,
+    2 more (resumed)."""
+    config = plan_config("camera")
+    params = rvggt_jax.init_params(config, 0)
+    root = tmp_path_factory.mktemp("finetune")
+    for i in range(2):
+        write_scene(make_scene(frames=4, height=SIZE[0], width=SIZE[1], seed=i), "folder", root / "data")
+    logs = {"full": [], "part": []}
+    own = lambda: jax.tree.map(jnp.copy, params)  # noqa: E731 (finetune's first step donates its params)
+    train.finetune(root / "data", root / "full", own(), config, FT_OPTS, log=logs["full"].append, progress=False)
+    for stop in (2, 4):
+        train.finetune(root / "data", root / "part", own(), config, dataclasses.replace(FT_OPTS, stop_at=stop),
+                       log=logs["part"].append, progress=False)
+    return root, logs, config, params
+
+
+def test_finetune_compiles_one_program_per_frame_bucket(finetuned):
+    root, logs, config, _ = finetuned
+    recs = [json.loads(x) for x in (root / "full" / "log.jsonl").read_text().splitlines()]
+    assert [r["frames"] for r in recs] == [2, 3, 3, 2]
+    (step,) = [f for (c, _), f in train.loop._STEPS.items() if c == config]
+    assert step._cache_size() == len(FT_OPTS.buckets) == 2  # none more on resuming
+    compiled = [m.split(" in ")[0] for m in logs["full"] + logs["part"] if m.startswith("compiled the train step")]
+    assert compiled == ["compiled the train step for 2 frames of 28x42", "compiled the train step for 3 frames of 28x42"]
+    assert any(m.startswith("stopped after step 4 of 30") for m in logs["full"])
+    with Image.open(root / "full" / "loss.png") as im:
+        assert im.size == (640, 360)
+
+
+def test_finetune_resumed_equals_uninterrupted(finetuned):
+    root, logs, _, params = finetuned
+    assert any(m.startswith("resuming from step 2") for m in logs["part"])
+    # every logged metric bit for bit (json keeps float64 exactly), each step once
+    assert (root / "part" / "log.jsonl").read_text() == (root / "full" / "log.jsonl").read_text()
+    tc = train.TrainConfig.from_dict(json.loads((root / "part" / "train.json").read_text())["train"])
+    like = train.init_state(params, tc)
+    a, b = train.restore_state(root / "full", like), train.restore_state(root / "part", like)
+    assert int(a.step) == int(b.step) == 4
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

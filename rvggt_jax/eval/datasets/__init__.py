@@ -18,7 +18,7 @@ from rvggt_jax.eval.datasets.base import SAMPLING, DatasetError, Scene, sample_i
 __all__ = ["FORMATS", "SAMPLING", "DatasetError", "Scene", "get_format", "load_scenes", "sample_indices"]
 
 FORMATS = {"7scenes": "sevenscenes", "nrgbd": "nrgbd", "scannet": "scannet", "tnt": "tnt", "dtu": "dtu",
-           "folder": "folder", "images": "images"}
+           "folder": "folder", "images": "images", "co3d": "co3d"}
 """Dataset name -> module of this package."""
 
 
