@@ -149,6 +149,19 @@ def device_layout(opts: FinetuneOptions):
                         accumulate=opts.accumulate, fsdp=opts.fsdp)
 
 
+def _train_step(config: VGGTConfig, tc: TrainConfig, layout, state, log):
+    """(step(state, batch), state placed for it): the one-device jitted step, or over
+    `layout`'s mesh the sharded step, which places each host batch on the mesh."""
+    if layout is None:
+        return cached_train_step(config, tc), state
+    from rvggt_jax.train import sharded as multi
+
+    mesh = multi.train_mesh(layout)
+    sharded_step = multi.make_sharded_train_step(config, tc, mesh, fsdp=layout.fsdp)
+    log(f"training on {layout.describe()}")
+    return (lambda st, b: sharded_step(st, multi.place_batch(b, mesh))), multi.place_state(state, mesh, layout.fsdp)
+
+
 def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTConfig, opts: FinetuneOptions,
              log: Callable[[str], Any] = print, progress: bool = True) -> Path:
     """Train `params` on the scenes of `data_dir` for `opts.steps` steps (resuming from
@@ -189,15 +202,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     state = jax.device_put(state, jax.devices()[0])
     start = int(state.step)
     stop = min(opts.steps, opts.stop_at) if opts.stop_at is not None else opts.steps
-    fn = cached_train_step(config, tc)
-    if layout is not None:
-        from rvggt_jax.train import sharded as multi
-
-        mesh = multi.train_mesh(layout)
-        sharded_step = multi.make_sharded_train_step(config, tc, mesh, fsdp=layout.fsdp)
-        state = multi.place_state(state, mesh, layout.fsdp)
-        fn = lambda st, b: sharded_step(st, multi.place_batch(b, mesh))  # noqa: E731
-        log(f"training on {layout.describe()}")
+    fn, state = _train_step(config, tc, layout, state, log)
     step_fn = BucketedStep(fn, opts.batch, buckets, opts.size, log)
     log(f"{len(usable)} {fmt} scenes in {data_dir}; {lo}..{hi} frames per step in buckets {list(buckets)}")
 
