@@ -178,7 +178,7 @@ def _run(name: str, q, k, v, bias32, scale: float, block_bytes: int) -> jax.Arra
                       lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, bits=False)[0].astype(q.dtype))
     if name == "tpu_flash":
         return tpu_flash_attention(q, k, v, bias32, scale, NEG_BIAS)
-    return fused_attention(q, k, v, bias32, scale, name)
+    return fused_attention(q, k, v, bias32, scale, name, NEG_BIAS)
 
 
 def _is_half(dtype: Any) -> bool:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rvggt_jax.ops import attention as attn
-from rvggt_jax.ops.kernels import tpu_flash
+from rvggt_jax.ops.kernels import fused, tpu_flash
 from tests.helpers.attention_reference import reference_attention
 from tests.helpers.deviceless import device, on
 
@@ -48,6 +48,35 @@ def test_gpu_program_takes_cudnn_for_bfloat16_and_no_cpu_workaround():
     text = _lowered(_auto, device("h200"), jnp.bfloat16)
     assert CUDNN in text and TPU_KERNEL not in text
     assert "ui16" not in text  # the XLA:CPU bit views stay out of the GPU program
+
+
+def test_gpu_gradient_takes_cudnn_at_odd_token_counts():
+    """A train step differentiates attention; JAX's cuDNN wrapper refuses odd sequence
+    lengths there (a frame of 224 x 294 has 341 tokens): `fused.even_lengths` pads them.
+    Without it this lowering raises "Unsupported sequence length Q 11, KV 13"."""
+    dev = device("h200")
+    for with_bias in (False, True):
+        def loss(q, k, v, b):
+            return attn.attention(q, k, v, b if with_bias else None).astype(jnp.float32).sum()
+
+        args = [on(dev, (1, n, 2, 16), jnp.bfloat16) for n in (11, 13, 13)]
+        text = jax.jit(jax.grad(loss, argnums=(0, 1, 2))).lower(*args, on(dev, (1, 13), jnp.float32)).as_text()
+        assert CUDNN in text and CUDNN + "SoftmaxBackward" in text, with_bias
+
+
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_even_lengths_leaves_attention_unchanged(with_bias):
+    rng = np.random.default_rng(0)
+    q, k, v = (rng.standard_normal((2, n, 2, 8)).astype(np.float32) for n in (11, 13, 13))
+    bias = rng.standard_normal((2, 13)).astype(np.float32) if with_bias else None
+    qp, kp, vp, bp = fused.even_lengths(jnp.asarray(q), jnp.asarray(k), jnp.asarray(v),
+                                        None if bias is None else jnp.asarray(bias), attn.NEG_BIAS)
+    assert (qp.shape[1], kp.shape[1], vp.shape[1], bp.shape) == (12, 14, 14, (2, 14))
+    got = reference_attention(qp, kp, vp, np.asarray(bp)[:, None, None, :])[:, :11]
+    want = reference_attention(q, k, v, None if bias is None else bias[:, None, None, :])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    even = fused.even_lengths(*(jnp.asarray(a[:, :10]) for a in (q, k, v)), None, attn.NEG_BIAS)
+    assert [a.shape[1] for a in even[:3]] == [10, 10, 10] and even[3] is None  # even: untouched
 
 
 def test_gpu_program_in_float32_takes_the_bounded_blocked_kernel():

@@ -59,16 +59,43 @@ def fold_key_bias(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array 
     return pad(q), pad(k), pad(v)
 
 
+def even_lengths(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, neg_bias: float
+                 ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array | None]:
+    """Odd token counts made even, for cuDNN: one zero query row more (the caller slices
+    its output off) and one zero key/value more that `neg_bias` in the key bias removes
+    (exp of it is exactly 0). The result equals the unpadded attention.
+
+    Why: JAX 0.10's cuDNN wrapper refuses odd sequence lengths when differentiating
+    ("Unsupported sequence length Q 341, KV 341": a rule meant for calls with a bias,
+    applied to every call because an absent bias is passed on as an empty array;
+    docs/accelerators.md). A frame of 224 x 294 has 16 x 21 + 5 = 341 tokens, so every
+    GPU train step at that size hit it. Shapes stay static: the padding depends on
+    shapes only."""
+    nq, nk = q.shape[1], k.shape[1]
+    if nq % 2:
+        q = jnp.pad(q, ((0, 0), (0, 1), (0, 0), (0, 0)))
+    if nk % 2:
+        k = jnp.pad(k, ((0, 0), (0, 1), (0, 0), (0, 0)))
+        v = jnp.pad(v, ((0, 0), (0, 1), (0, 0), (0, 0)))
+        bias = jnp.zeros((k.shape[0], nk), jnp.float32) if key_bias is None else key_bias.astype(jnp.float32)
+        key_bias = jnp.pad(bias, ((0, 0), (0, 1)), constant_values=neg_bias)
+    return q, k, v, key_bias
+
+
 def fused_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
-                    implementation: str) -> jax.Array:
+                    implementation: str, neg_bias: float) -> jax.Array:
     """`jax.nn.dot_product_attention` with the key bias [B, Nk] (float32, or None) folded
-    in: implementation "cudnn" (flash, head dims padded to CUDNN_HEAD_MULTIPLE) or "xla"
+    in: implementation "cudnn" (flash; odd token counts padded by `even_lengths`, whose
+    extra key `neg_bias` removes; head dims padded to CUDNN_HEAD_MULTIPLE) or "xla"
     (forms all logits). q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv] ->
     [B, Nq, H, Dv] in q's dtype."""
-    dv = v.shape[-1]
-    multiple = CUDNN_HEAD_MULTIPLE if implementation == "cudnn" else 1
+    nq, dv = q.shape[1], v.shape[-1]
+    multiple = 1
+    if implementation == "cudnn":
+        multiple = CUDNN_HEAD_MULTIPLE
+        q, k, v, key_bias = even_lengths(q, k, v, key_bias, neg_bias)
     qf, kf, vf = fold_key_bias(q, k, v, key_bias, scale, multiple)
     if implementation == "cudnn" and qf.shape[-1] > CUDNN_MAX_HEAD_DIM:
         raise ValueError(f"cuDNN attention takes head dims up to {CUDNN_MAX_HEAD_DIM}; got {qf.shape[-1]}")
     out = jax.nn.dot_product_attention(qf, kf, vf, scale=scale, implementation=implementation)
-    return out[..., :dv].astype(q.dtype)
+    return out[:, :nq, :, :dv].astype(q.dtype)
