@@ -52,16 +52,22 @@ def test_gpu_program_takes_cudnn_for_bfloat16_and_no_cpu_workaround():
 
 def test_gpu_gradient_takes_cudnn_at_odd_token_counts():
     """A train step differentiates attention; JAX's cuDNN wrapper refuses odd sequence
-    lengths there (a frame of 224 x 294 has 341 tokens): `fused.even_lengths` pads them.
-    Without it this lowering raises "Unsupported sequence length Q 11, KV 13"."""
+    lengths there (a frame of 224 x 294 has 341 tokens): the gradient is taken at counts
+    padded by `fused.even_lengths`. Without it this lowering raises "Unsupported sequence
+    length Q 11, KV 13"."""
     dev = device("h200")
     for with_bias in (False, True):
         def loss(q, k, v, b):
             return attn.attention(q, k, v, b if with_bias else None).astype(jnp.float32).sum()
 
         args = [on(dev, (1, n, 2, 16), jnp.bfloat16) for n in (11, 13, 13)]
-        text = jax.jit(jax.grad(loss, argnums=(0, 1, 2))).lower(*args, on(dev, (1, 13), jnp.float32)).as_text()
+        bias = on(dev, (1, 13), jnp.float32)
+        text = jax.jit(jax.grad(loss, argnums=(0, 1, 2))).lower(*args, bias).as_text()
         assert CUDNN in text and CUDNN + "SoftmaxBackward" in text, with_bias
+        assert "1x12x2x" in text and "1x14x2x" in text  # differentiated at even counts
+        # the forward alone keeps its odd counts (no copies): only its cuDNN call
+        forward = jax.jit(loss).lower(*args, bias).as_text()
+        assert CUDNN in forward and "1x12x2x" not in forward and "1x14x2x" not in forward
 
 
 @pytest.mark.parametrize("with_bias", [False, True])
@@ -77,6 +83,29 @@ def test_even_lengths_leaves_attention_unchanged(with_bias):
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     even = fused.even_lengths(*(jnp.asarray(a[:, :10]) for a in (q, k, v)), None, attn.NEG_BIAS)
     assert [a.shape[1] for a in even[:3]] == [10, 10, 10] and even[3] is None  # even: untouched
+
+
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_odd_lengths_gradient_equals_autodiff(with_bias):
+    """The odd-count path's gradient (taken at padded counts) against autodiff of the
+    unpadded attention, float32 on this CPU ("xla": the same plumbing as "cudnn")."""
+    rng = np.random.default_rng(1)
+    q, k, v = (jnp.asarray(rng.standard_normal((2, n, 2, 8)), jnp.float32) for n in (11, 13, 13))
+    bias = jnp.asarray(rng.standard_normal((2, 13)), jnp.float32) if with_bias else None
+    w = jnp.asarray(rng.standard_normal((2, 11, 2, 8)), jnp.float32)
+    scale = 8 ** -0.5
+
+    def loss(fn):
+        return lambda q, k, v, b: (fn(q, k, v, b) * w).sum()
+
+    odd = loss(lambda q, k, v, b: fused.odd_lengths(q, k, v, b, scale, attn.NEG_BIAS, "xla"))
+    plain = loss(lambda q, k, v, b: fused.fused_attention(q, k, v, b, scale, "xla", attn.NEG_BIAS))
+    argnums = (0, 1, 2, 3) if with_bias else (0, 1, 2)
+    got = jax.grad(odd, argnums=argnums)(q, k, v, bias)
+    want = jax.grad(plain, argnums=argnums)(q, k, v, bias)
+    for a, b in zip(got, want):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(odd(q, k, v, bias), plain(q, k, v, bias), rtol=1e-6)
 
 
 def test_gpu_program_in_float32_takes_the_bounded_blocked_kernel():

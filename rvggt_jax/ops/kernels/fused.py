@@ -10,6 +10,7 @@ multiple of 8 for cuDNN (D = 64 + the bias column would be 65).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -61,16 +62,10 @@ def fold_key_bias(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array 
 
 def even_lengths(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, neg_bias: float
                  ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array | None]:
-    """Odd token counts made even, for cuDNN: one zero query row more (the caller slices
-    its output off) and one zero key/value more that `neg_bias` in the key bias removes
-    (exp of it is exactly 0). The result equals the unpadded attention.
-
-    Why: JAX 0.10's cuDNN wrapper refuses odd sequence lengths when differentiating
-    ("Unsupported sequence length Q 341, KV 341": a rule meant for calls with a bias,
-    applied to every call because an absent bias is passed on as an empty array;
-    docs/accelerators.md). A frame of 224 x 294 has 16 x 21 + 5 = 341 tokens, so every
-    GPU train step at that size hit it. Shapes stay static: the padding depends on
-    shapes only."""
+    """Odd token counts made even for cuDNN's differentiated kernel: one zero query row
+    more (the caller slices its output off) and one zero key/value more that `neg_bias`
+    in the key bias removes (exp of it is exactly 0). The attention is unchanged. Shapes
+    depend on shapes only."""
     nq, nk = q.shape[1], k.shape[1]
     if nq % 2:
         q = jnp.pad(q, ((0, 0), (0, 1), (0, 0), (0, 0)))
@@ -85,17 +80,51 @@ def even_lengths(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array |
 def fused_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
                     implementation: str, neg_bias: float) -> jax.Array:
     """`jax.nn.dot_product_attention` with the key bias [B, Nk] (float32, or None) folded
-    in: implementation "cudnn" (flash; odd token counts padded by `even_lengths`, whose
-    extra key `neg_bias` removes; head dims padded to CUDNN_HEAD_MULTIPLE) or "xla"
+    in: implementation "cudnn" (flash, head dims padded to CUDNN_HEAD_MULTIPLE) or "xla"
     (forms all logits). q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv] ->
-    [B, Nq, H, Dv] in q's dtype."""
-    nq, dv = q.shape[1], v.shape[-1]
-    multiple = 1
-    if implementation == "cudnn":
-        multiple = CUDNN_HEAD_MULTIPLE
-        q, k, v, key_bias = even_lengths(q, k, v, key_bias, neg_bias)
+    [B, Nq, H, Dv] in q's dtype.
+
+    Odd token counts under cuDNN are differentiated through `even_lengths` (the extra
+    key removed by `neg_bias`): JAX 0.10's cuDNN wrapper refuses odd sequence lengths when
+    differentiating ("Unsupported sequence length Q 341, KV 341": a rule meant for calls
+    with a bias, applied to every call because an absent bias is passed on as an empty
+    array; docs/accelerators.md). A frame of 224 x 294 has 16 x 21 + 5 = 341 tokens. The
+    forward alone keeps the odd counts (no copies: it is not refused)."""
+    if implementation == "cudnn" and (q.shape[1] % 2 or k.shape[1] % 2):
+        return odd_lengths(q, k, v, key_bias, scale, neg_bias, implementation)
+    return _fused(q, k, v, key_bias, scale, implementation)
+
+
+def _fused(q, k, v, key_bias, scale, implementation):
+    dv = v.shape[-1]
+    multiple = CUDNN_HEAD_MULTIPLE if implementation == "cudnn" else 1
     qf, kf, vf = fold_key_bias(q, k, v, key_bias, scale, multiple)
     if implementation == "cudnn" and qf.shape[-1] > CUDNN_MAX_HEAD_DIM:
         raise ValueError(f"cuDNN attention takes head dims up to {CUDNN_MAX_HEAD_DIM}; got {qf.shape[-1]}")
     out = jax.nn.dot_product_attention(qf, kf, vf, scale=scale, implementation=implementation)
-    return out[:, :nq, :, :dv].astype(q.dtype)
+    return out[..., :dv].astype(q.dtype)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5, 6))
+def odd_lengths(q, k, v, key_bias, scale, neg_bias, implementation):
+    """The fused attention at odd token counts: as they are in the forward; differentiated
+    (a gradient's forward pass and its backward) at even counts (`even_lengths`). The
+    model takes it for "cudnn"; "xla" checks it on a CPU."""
+    return _fused(q, k, v, key_bias, scale, implementation)
+
+
+def _even(q, k, v, key_bias, scale, neg_bias, implementation):
+    q2, k2, v2, b2 = even_lengths(q, k, v, key_bias, neg_bias)
+    return _fused(q2, k2, v2, b2, scale, implementation)[:, : q.shape[1]]
+
+
+def _odd_lengths_fwd(q, k, v, key_bias, scale, neg_bias, implementation):
+    # (jax.vjp's function is a pytree of the residuals)
+    return jax.vjp(lambda *a: _even(*a, scale, neg_bias, implementation), q, k, v, key_bias)
+
+
+def _odd_lengths_bwd(scale, neg_bias, implementation, vjp, g):
+    return vjp(g)
+
+
+odd_lengths.defvjp(_odd_lengths_fwd, _odd_lengths_bwd)
