@@ -8,9 +8,9 @@
     state, metrics = step(state, batch)
 
 Over many devices (mesh "data" x "frames", FSDP): `train.sharded` (`make_sharded_train_step`).
-See docs/training.md. `rvggt finetune DATA_DIR --out DIR` runs `rvggt_jax.train.finetune` (module `rvggt_jax.train.loop`)
-on any dataset format `rvggt_jax.train.open_scenes` reads, with a random frame count per step
-in a few compiled buckets (`rvggt_jax.train.data`).
+See docs/training.md. `rvggt finetune DATA_DIR --out DIR` runs `rvggt_jax.train.finetune`
+(module `rvggt_jax.train.loop`) on any dataset format `rvggt_jax.train.open_scenes` reads,
+with a random frame count per step in a few compiled buckets (`rvggt_jax.train.data`).
 Names resolve on first use (building the CLI parser imports no JAX).
 """
 

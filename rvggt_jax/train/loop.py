@@ -30,7 +30,8 @@ import numpy as np
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model.forward import InputError
 from rvggt_jax.train import data as data_mod
-from rvggt_jax.train.step import TrainConfig, init_state, latest_step, make_train_step, restore_state, save_state
+from rvggt_jax.train.step import (TrainConfig, divisors, init_state, latest_step, make_train_step, restore_state,
+                                  save_state)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,10 +151,14 @@ def device_layout(opts: FinetuneOptions):
 
 
 def _train_step(config: VGGTConfig, tc: TrainConfig, layout, state, log):
-    """(step(state, batch), state placed for it): the one-device jitted step, or over
-    `layout`'s mesh the sharded step, which places each host batch on the mesh."""
+    """(step(state, batch), state placed for it): the one-device jitted step (the state
+    committed to the device), or over `layout`'s mesh the sharded step, which places each
+    host batch on the mesh (the state placed by `place_state`)."""
     if layout is None:
-        return cached_train_step(config, tc), state
+        # every leaf a jax.Array committed to the device: the state a step returns is, and a
+        # fresh one (numpy or uncommitted parameters) or a restored one must have the same
+        # signature, or jit compiles the step again for it
+        return cached_train_step(config, tc), jax.device_put(state, jax.devices()[0])
     from rvggt_jax.train import sharded as multi
 
     mesh = multi.train_mesh(layout)
@@ -174,9 +179,9 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
         raise InputError(f"steps and batch must be >= 1; got {opts.steps}, {opts.batch}")
     lo, hi, buckets = data_mod.frame_plan(opts.frames, opts.buckets)
     if opts.accumulate < 1 or opts.batch % opts.accumulate:
-        divisors = [k for k in range(1, opts.batch + 1) if opts.batch % k == 0]
         raise InputError(f"--accumulate {opts.accumulate} must divide --batch {opts.batch} (micro-batches of "
-                         f"batch / accumulate scenes): --batch {opts.batch} takes --accumulate in {divisors}")
+                         f"batch / accumulate scenes): --batch {opts.batch} takes --accumulate in "
+                         f"{divisors(opts.batch)}")
     layout = device_layout(opts)  # (checked before reading data)
     data_mod._check_size(opts.size)
     fmt, scenes = data_mod.open_scenes(data_dir, opts.data_format, require_depth=opts.require_depth, log=log)
@@ -196,10 +201,6 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     if start is not None:
         state = restore_state(out, state)
         log(f"resuming from step {start} in {out}")
-    # every leaf a jax.Array committed to the device: the state a step returns is, and a
-    # fresh one (numpy or uncommitted parameters) or a restored one must have the same
-    # signature, or jit compiles the step again for it
-    state = jax.device_put(state, jax.devices()[0])
     start = int(state.step)
     stop = min(opts.steps, opts.stop_at) if opts.stop_at is not None else opts.steps
     fn, state = _train_step(config, tc, layout, state, log)

@@ -45,7 +45,7 @@ from jax.sharding import PartitionSpec as P
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model.forward import InputError, check_inputs, forward_frames
 from rvggt_jax.parallel.sharded import FRAMES_AXIS, frame_shards
-from rvggt_jax.train.step import TrainConfig, TrainState, train_step_fn
+from rvggt_jax.train.step import TrainConfig, TrainState, divisors, train_step_fn
 
 DATA_AXIS = "data"
 AXES = (DATA_AXIS, FRAMES_AXIS)
@@ -70,10 +70,6 @@ class TrainLayout:
         return f"{self.devices} devices: mesh data {self.data} x frames {self.frames}; {state}"
 
 
-def _divisors(n: int) -> list[int]:
-    return [k for k in range(1, n + 1) if n % k == 0]
-
-
 def train_layout(devices: int, batch: int, frames: int, frames_per_device: int | None = None, *,
                  accumulate: int = 1, fsdp: bool = False, available: int | None = None) -> TrainLayout:
     """The mesh of `devices` devices for batches of `batch` scenes of `frames` frames
@@ -89,15 +85,15 @@ def train_layout(devices: int, batch: int, frames: int, frames_per_device: int |
                          f"{accumulate}")
     if batch % accumulate:
         raise InputError(f"--accumulate {accumulate} must divide --batch {batch}: use --accumulate in "
-                         f"{_divisors(batch)}")
+                         f"{divisors(batch)}")
     micro = batch // accumulate
     fpd = frames if frames_per_device is None else frames_per_device
     if fpd < 1 or frames % fpd:
         raise InputError(f"--frames-per-device {fpd} must divide --frames {frames} (each device takes the same "
-                         f"number of a scene's frames): use one of {_divisors(frames)}")
+                         f"number of a scene's frames): use one of {divisors(frames)}")
     frame_devices = frames // fpd
     # every (data, frames) split of these devices that fits the batch and the frames
-    fits = [(d, devices // d) for d in _divisors(devices) if micro % d == 0 and frames % (devices // d) == 0]
+    fits = [(d, devices // d) for d in divisors(devices) if micro % d == 0 and frames % (devices // d) == 0]
     if devices % frame_devices == 0 and micro % (devices // frame_devices) == 0:
         if devices > available:
             raise InputError(f"--devices {devices}: there are {available} device(s) "
@@ -116,7 +112,7 @@ def train_layout(devices: int, batch: int, frames: int, frames_per_device: int |
     if fits:
         would.append("--frames-per-device " + " or ".join(
             f"{frames // f} (data {d} x frames {f})" for d, f in fits))
-    counts = sorted({d * frame_devices for d in _divisors(micro) if d * frame_devices <= available})
+    counts = sorted({d * frame_devices for d in divisors(micro) if d * frame_devices <= available})
     if counts:
         would.append(f"--devices {' or '.join(map(str, counts))} (at --frames-per-device {fpd})")
     if devices % frame_devices == 0:
@@ -198,10 +194,10 @@ def check_batch(batch: dict, mesh: Mesh) -> None:
     d, f = mesh.shape[DATA_AXIS], mesh.shape[FRAMES_AXIS]
     if b % d:
         raise InputError(f"a batch of {b} scenes does not split over {d} devices on axis \"data\": use a multiple "
-                         f"of {d} scenes, or a data axis in {_divisors(b)}")
+                         f"of {d} scenes, or a data axis in {divisors(b)}")
     if s % f:
         raise InputError(f"{s} frames do not split over {f} devices on axis \"frames\": use a multiple of {f} "
-                         f"frames, or a frames axis in {_divisors(s)}")
+                         f"frames, or a frames axis in {divisors(s)}")
 
 
 # ---------------------------------------------------------------------------------------

@@ -203,14 +203,18 @@ def trainable_loss(params: Any, batch: dict, config: VGGTConfig, tc: TrainConfig
     return loss_fn(frozen_as_constants(params, param_labels(params, tc.train)), batch, config, tc.loss, forward)
 
 
+def divisors(n: int) -> list[int]:
+    """The divisors of `n`, ascending: what an error offers when a count must divide `n`."""
+    return [k for k in range(1, n + 1) if n % k == 0]
+
+
 def micro_batches(batch: dict, accumulate: int) -> dict:
     """Every leaf [B, ...] -> [accumulate, B / accumulate, ...] (consecutive scenes per
     micro-batch). A ValueError when `accumulate` does not divide B, naming the ones that do."""
     b = batch["images"].shape[0]
     if b % accumulate:
-        divisors = [k for k in range(1, b + 1) if b % k == 0]
         raise ValueError(f"accumulate={accumulate} does not divide the batch of {b} scenes: use accumulate in "
-                         f"{divisors}, or a batch that is a multiple of {accumulate}")
+                         f"{divisors(b)}, or a batch that is a multiple of {accumulate}")
     return jax.tree.map(lambda x: x.reshape((accumulate, b // accumulate) + x.shape[1:]), batch)
 
 
