@@ -138,6 +138,11 @@ class CompressionConfig:
                          1: unpadded). The attention op (`rvggt_jax.ops.attention`) pads as
                          its kernel needs; on CPU the bias is added to the logits.
       match_chunk        src tokens per similarity chunk; 0 = one chunk.
+      merge_head_groups  a merging layer runs its means, keys and attention for this many
+                         groups of heads, one group after another (at most one per head):
+                         the float32 group sums and the merged q, k, v of one group exist
+                         at a time, a fraction of one layer's K/V (exact: heads attend
+                         independently). The price: norm1 of the tokens recomputed per group.
     """
 
     name: str = "dense"
@@ -163,6 +168,7 @@ class CompressionConfig:
     dense_layers: tuple[int, ...] = ()
     head_pad_multiple: int = 1
     match_chunk: int = 1024
+    merge_head_groups: int = 2
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -177,6 +183,8 @@ class CompressionConfig:
             raise ValueError(f"alpha must be in [0, 1]; got {self.alpha}")
         if self.head_pad_multiple < 1:
             raise ValueError("head_pad_multiple must be >= 1")
+        if not isinstance(self.merge_head_groups, int) or self.merge_head_groups < 1:
+            raise ValueError(f"merge_head_groups must be an integer >= 1; got {self.merge_head_groups!r}")
         for layer in range(self.depth):
             rho = self.layer_merge_ratio(layer)
             if not 0.0 <= rho < 1.0:

@@ -42,10 +42,12 @@ def kv_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerP
 
 
 def rows_kv(p_block: Params, x: jax.Array, idx: jax.Array, pos: layers.RopeTables, config,
-            shards: FrameShards, per_frame: int) -> tuple[jax.Array, jax.Array]:
+            shards: FrameShards, per_frame: int, num_heads: int | None = None) -> tuple[jax.Array, jax.Array]:
     """K and V [B, M, H, d] of the tokens idx [B, M] (global positions) of the sequence
     whose rows x [B, N, C] this device holds (their norm1, projection, qk-norm and RoPE
-    at their own positions; `pos` the tables of x's tokens, which repeat every frame)."""
+    at their own positions; `pos` the tables of x's tokens, which repeat every frame).
+    num_heads: the heads p_block's projections make (default all; a head group's fewer)."""
     rows = shards.take_rows(x, idx, per_frame)
     tables = pos.frame_rows(idx % per_frame)
-    return layers.block_qkv(p_block, rows, config.num_heads, tables, dtype=config.compute_dtype, parts="kv")
+    heads = config.num_heads if num_heads is None else num_heads
+    return layers.block_qkv(p_block, rows, heads, tables, dtype=config.compute_dtype, parts="kv")

@@ -210,11 +210,60 @@ def _group_tables(shards: FrameShards, src_idx: np.ndarray, dst_idx: np.ndarray,
     return src_t, dst_t, order
 
 
-def _inverse_permutation(order: jax.Array) -> jax.Array:
-    """order [..., n] (a permutation along the last axis) -> its inverse."""
-    n = order.shape[-1]
-    ranks = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), order.shape)
-    return jnp.put_along_axis(jnp.zeros_like(ranks), order, ranks, axis=-1, inplace=False)
+def ordered_bits(score: jax.Array) -> jax.Array:
+    """float32 (or float64) -> uint32 (uint64) in the same order, -0.0 equal to 0.0 and
+    NaN lowest (as a sort compares them): negative floats have every bit flipped, the
+    others their sign bit."""
+    if jnp.dtype(score.dtype).itemsize < 4:
+        score = score.astype(jnp.float32)
+    nbits = jnp.dtype(score.dtype).itemsize * 8
+    utype = jnp.dtype(f"uint{nbits}")
+    score = jnp.where(score == 0, jnp.zeros((), score.dtype), score)
+    bits = jax.lax.bitcast_convert_type(score, utype)
+    flip = jnp.where(bits >> (nbits - 1) == 1, jnp.array(-1).astype(utype), jnp.array(1 << (nbits - 1), utype))
+    return jnp.where(jnp.isnan(score), jnp.zeros((), utype), bits ^ flip)
+
+
+def select_best(score: jax.Array, r: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The r highest scores of each row of score [..., n], ties to the lower index (the
+    set a stable sort by descending score puts first) -> (merged [..., n] bool, rank
+    [..., n] int32: an unselected entry's place among the unselected, in index order,
+    unselected [..., n - r] int32: their indices in index order).
+
+    No sort: the r-th highest score is found bit by bit (32 counting passes over the
+    row, on the scores' order-preserving bits, `ordered_bits`), then the ties at it taken in index
+    order. XLA:GPU, where it has no library sort (a compile without the device), builds
+    its own sort kernel for each sort of a program, seconds of compile per sort; and the
+    rows come out in index order, which no result depends on (the merged rows are a set
+    of keys and queries)."""
+    n = score.shape[-1]
+    lead = score.shape[:-1]
+    if r <= 0:
+        merged = jnp.zeros(score.shape, bool)
+    elif r >= n:
+        merged = jnp.ones(score.shape, bool)
+    else:
+        key = ordered_bits(score)
+        nbits = key.dtype.itemsize * 8
+
+        def bit(i, t):  # t: the highest value with at least r keys >= t, built from the top bit
+            cand = t | (jnp.ones((), key.dtype) << (nbits - 1 - i).astype(key.dtype))
+            enough = jnp.sum((key >= cand[..., None]).astype(jnp.int32), axis=-1) >= r
+            return jnp.where(enough, cand, t)
+
+        t = jax.lax.fori_loop(0, nbits, bit, jnp.zeros(lead, key.dtype))[..., None]
+        above = key > t
+        ties = key == t
+        need = r - jnp.sum(above.astype(jnp.int32), axis=-1, keepdims=True)
+        merged = above | (ties & (jnp.cumsum(ties.astype(jnp.int32), axis=-1) <= need))
+    rest = (~merged).astype(jnp.int32)
+    rank = jnp.cumsum(rest, axis=-1) - rest
+    u = n - max(0, min(r, n))
+    flat_rank = jnp.where(merged, u, rank).reshape(-1, n)
+    rows = flat_rank.shape[0]
+    unselected = jnp.zeros((rows, u), jnp.int32).at[jnp.arange(rows)[:, None], flat_rank].set(
+        jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (rows, n)), mode="drop", unique_indices=True)
+    return merged, rank, unselected.reshape(lead + (u,))
 
 
 def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: LayerPlan, chunk: int, dtype=None,
@@ -235,11 +284,9 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
         score, arg = score[:, 0], arg[:, 0]  # [B, N_src], arg indexes dst_pos
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
-        order = jnp.argsort(-score, axis=-1, stable=True)  # best first
-        rank = _inverse_permutation(order)  # position of each src in `order`
-        merged = rank < r
-        group_src = jnp.where(merged, arg, n_dst + rank - r)
-        unm_pos = jnp.take(jnp.asarray(part.src_pos, jnp.int32), order[:, r:], mode="clip")
+        merged, rank, unmerged = select_best(score, r)
+        group_src = jnp.where(merged, arg, n_dst + rank)
+        unm_pos = jnp.take(jnp.asarray(part.src_pos, jnp.int32), unmerged, mode="clip")
     else:
         s1, n_src_f = part.src_pos_f.shape
         r_f = plan.r_frame
@@ -250,14 +297,13 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
                        * part.dst_rank_f.shape[1], mode="clip")
         if protected_src is not None:
             score = jnp.where(protected_src.reshape(b, s1, n_src_f), PROTECTED_SCORE, score)
-        order = jnp.argsort(-score, axis=-1, stable=True)
-        rank = _inverse_permutation(order)
-        merged = rank < r_f
+        merged, rank, unmerged = select_best(score, r_f)
         frame_base = n_dst + jnp.arange(s1, dtype=jnp.int32)[:, None] * u_f
-        group_src = jnp.where(merged, arg, frame_base + rank - r_f).reshape(b, n_src)
+        group_src = jnp.where(merged, arg, frame_base + rank).reshape(b, n_src)
         merged = merged.reshape(b, n_src)
-        unm_pos = jnp.take_along_axis(jnp.broadcast_to(jnp.asarray(part.src_pos_f, jnp.int32), order.shape),
-                                      order[..., r_f:], axis=-1, mode="promise_in_bounds").reshape(b, U)
+        unm_pos = jnp.take_along_axis(jnp.broadcast_to(jnp.asarray(part.src_pos_f, jnp.int32), unmerged.shape[:-1]
+                                                       + part.src_pos_f.shape[-1:]),
+                                      unmerged, axis=-1, mode="promise_in_bounds").reshape(b, U)
 
     group_src = group_src.astype(jnp.int32)
     dst_ranks = jnp.broadcast_to(jnp.arange(n_dst, dtype=jnp.int32), (b, n_dst))
@@ -309,8 +355,18 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
         sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
     sizes = match.sizes
-    means = tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype) for a, o in zip(sums, spec))
+    means = materialized(tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype)
+                               for a, o in zip(sums, spec)))
     return (x0, *means) if owned else means
+
+
+def materialized(means):
+    """The means as buffers of their own dtype, made here: else XLA fuses the division
+    and the cast into their consumers, the attention much later, and the float32 sums stay
+    alive until then (a later `zeros_from(mean)` reads one element straight from the sum).
+    In XLA:GPU's plan of `regime` at 1000 frames, q's and k's sums were alive next to v's
+    (3 x 2.1 GB where one was meant to be)."""
+    return jax.lax.optimization_barrier(means)
 
 
 def block_sums(values: jax.Array, group: jax.Array, rows: int, into: jax.Array | None = None) -> jax.Array:

@@ -4,10 +4,13 @@ output projection -> unmerge, every token taking its group's row.
     x, state = merging_block(p_block, x, pos, plan, config, state)
 
 The steps, each a function below: the layer's `Match` (computed, or reused from the
-band's cache); the group means of q, k and v (`merged_qkv`: summed chunk by chunk as they
-are projected, no full-sequence Q, K or V); the keys the layer keeps (`kept_keys`: all
-merged rows, or the K/V-downsampled slots, plus the authors' duplicated protected dst);
-the attention (`attend`: one device, or around the ring); the unmerge inside the block.
+band's cache); the merged rows kept as keys (`key_slots`); then, for one group of heads
+after another (`head_groups`, `CompressionConfig.merge_head_groups`), the group means of
+q, k and v (`merged_qkv`: summed chunk by chunk as they are projected, no full-sequence
+Q, K or V), the keys (`kept_keys`: all merged rows, or the K/V-downsampled slots, plus
+the authors' duplicated protected dst) and the attention (`attend`: one device, or
+around the ring); the unmerge inside the block. Heads attend independently, so the
+groups change no value; they bound the float32 sums and merged rows alive at once.
 
 Split over devices, the merged rows are split in `rows` per device (a padding group at
 N_m collects the padding frames' tokens): each device projects its own tokens, the group
@@ -60,18 +63,48 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
                   ) -> tuple[jax.Array, State]:
     """One merging global block over x [B, N, C] (this device's frames; pos: their RoPE
     tables) under `plan` -> (x [B, N, C], the state with this layer's match and K/V slots
-    cached when the plan stores them)."""
+    cached when the plan stores them). The means, keys and attention run for one group
+    of heads after another (`head_groups`), each group's sums made after the previous
+    group's output."""
     match, state = layer_match(p_block, x, plan, config, state)
     share = merged_rows(match, plan, state.shards)
-    x, qm, km, vm = merged_qkv(p_block, x, pos, match, share, plan, config, state.shards)
-    keys, state = kept_keys(p_block, x, pos, km, vm, match, share, plan, config, state)
-    out = attend(qm, keys, plan, config, state.shards)
+    slots, state = key_slots(plan, config, match, state)
+    outs, after = [], match.group
+    for heads in head_groups(config.num_heads, config.compression.merge_head_groups):
+        p_heads = heads_of(p_block, heads, config.head_dim)
+        x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, len(heads), after)
+        keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, len(heads))
+        outs.append(attend(qm, keys, plan, config, state.shards))
+        after = outs[-1]
+    out = outs[0] if len(outs) == 1 else jnp.concatenate(outs, axis=2)  # [B, rows, H, D]
     # the output projection on the merged rows, then every token takes its group's row
     b, c = x.shape[0], x.shape[-1]
     proj = p_block["attn"]["proj"]
     out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, share.rows, c),),
                             bytes_per_row=b * c * 4 * 4)
     return unmerge_block(p_block, x, out, share, config, state.shards), state
+
+
+def head_groups(num_heads: int, groups: int) -> tuple[range, ...]:
+    """The heads split into min(groups, num_heads) contiguous groups of near-equal size."""
+    groups = min(groups, num_heads)
+    edges = [(num_heads * g) // groups for g in range(groups + 1)]
+    return tuple(range(a, b) for a, b in zip(edges[:-1], edges[1:]))
+
+
+def heads_of(p_block: Params, heads: range, head_dim: int) -> Params:
+    """The block's parameters with its q, k, v projections cut to the heads `heads`
+    (their output columns): a head group's projections. The norms (shared by the heads)
+    and the output projection stay whole."""
+    attn = p_block["attn"]
+    if len(heads) * head_dim == attn["q"]["kernel"].shape[-1]:
+        return p_block
+    cols = slice(heads.start * head_dim, heads.stop * head_dim)
+
+    def cut(lin):
+        return {name: (w[..., cols] if name in ("kernel", "bias") else w) for name, w in lin.items()}
+
+    return {**p_block, "attn": {**attn, **{name: cut(attn[name]) for name in "qkv"}}}
 
 
 def layer_match(p_block: Params, x: jax.Array, plan: LayerPlan, config, state: State) -> tuple[Match, State]:
@@ -104,13 +137,14 @@ def merged_rows(match: Match, plan: LayerPlan, shards: FrameShards) -> MergedRow
 
 
 def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Match, share: MergedRows,
-               plan: LayerPlan, config, shards: FrameShards):
-    """(x, q, k, v): the group means [B, rows, H, D] of q, k and v (after qk-norm and
-    RoPE) of this device's merged rows, x passing through each loop. One of q, k, v at a
-    time, each summed after the previous mean, so that one float32 sum exists at once
-    (the norm is recomputed, a small price)."""
+               plan: LayerPlan, config, shards: FrameShards, heads: int, after: jax.Array):
+    """(x, q, k, v): the group means [B, rows, heads, D] of q, k and v (after qk-norm and
+    RoPE) of this device's merged rows, for the heads p_block's projections make, x
+    passing through each loop. One of q, k, v at a time, each summed after the previous
+    mean (the first after `after`), so that one float32 sum exists at once (the norm is
+    recomputed, a small price)."""
     b, c = x.shape[0], x.shape[-1]
-    heads, dtype = config.num_heads, config.compute_dtype
+    dtype = config.compute_dtype
 
     def means(x, parts, after):
         fn = layers.block_qkv_rows(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
@@ -122,39 +156,50 @@ def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Mat
                                                 dep=after)
         sums = shards.ring_sum_scatter(
             lambda block, acc: merge_lib.block_sums(vals, share.group - block * share.rows, share.rows, into=acc))
-        return xs, (sums / share.sizes[..., None, None]).astype(vals.dtype)
+        return xs, merge_lib.materialized((sums / share.sizes[..., None, None]).astype(vals.dtype))
 
-    x, qm = means(x, "q", match.group)  # [B, rows, H, D]: this device's merged rows
+    x, qm = means(x, "q", after)  # [B, rows, heads, D]: this device's merged rows
     x, km = means(x, "k", qm)
     x, vm = means(x, "v", km)
     return x, qm, km, vm
 
 
+def key_slots(plan: LayerPlan, config, match: Match, state: State) -> tuple[tuple | None, State]:
+    """The merged rows a `kv_mode` "select" layer keeps as keys: (sel [B, M] row indices,
+    valid [B, M]) = the fixed slots then the dynamic ones (cached per band and tile), or
+    None when every merged row is a key; once per layer, whatever the head groups."""
+    if plan.kv_mode == "all":
+        return None, state
+    b = match.group.shape[0]
+    fixed = plan.fixed_kv
+    kv_key = None if plan.match_key is None else (plan.match_key, plan.tile)
+    if kv_key is not None and kv_key in state.kv:
+        idx, ok = state.kv[kv_key]
+    else:
+        idx, ok = slots = kv_lib.dynamic_slots(plan, config.compression, match, state.protected)
+        if kv_key is not None:
+            state = state._replace(kv={**state.kv, kv_key: slots})
+    sel = jnp.concatenate([jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size)), idx], axis=1)
+    valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+    return (sel, valid), state
+
+
 def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Array, vm: jax.Array, match: Match,
-              share: MergedRows, plan: LayerPlan, config, state: State) -> tuple[Keys, State]:
-    """The keys of the layer: every merged row (`kv_mode` "all") or the fixed and dynamic
-    K/V slots (cached per band and tile), and with `n_dup` the protected dst once more,
-    un-merged, size 1 (the authors' artefact). Over devices, the keys are this device's
-    merged rows, those the layer does not keep masked out."""
+              share: MergedRows, plan: LayerPlan, config, state: State, slots: tuple | None, heads: int) -> Keys:
+    """The keys of the layer for the heads of km, vm [B, rows, heads, D]: every merged row
+    (`kv_mode` "all") or the kept slots (`key_slots`), and with `n_dup` the protected
+    dst once more, un-merged, size 1 (the authors' artefact). Over devices, the keys are
+    this device's merged rows, those the layer does not keep masked out."""
     comp, shards = config.compression, state.shards
     ring = shards.sharded
     b = km.shape[0]
     own_rows = share.first + jnp.arange(share.rows)
-    if plan.kv_mode == "all":
+    if slots is None:
         kk, vv, g, valid = km, vm, (share.sizes if ring else match.sizes), None
         if ring:
             valid = jnp.broadcast_to(own_rows < plan.n_query, (b, share.rows))
     else:
-        fixed = plan.fixed_kv
-        kv_key = None if plan.match_key is None else (plan.match_key, plan.tile)
-        if kv_key is not None and kv_key in state.kv:
-            idx, ok = state.kv[kv_key]
-        else:
-            idx, ok = slots = kv_lib.dynamic_slots(plan, comp, match, state.protected)
-            if kv_key is not None:
-                state = state._replace(kv={**state.kv, kv_key: slots})
-        sel = jnp.concatenate([jnp.broadcast_to(jnp.asarray(fixed, jnp.int32), (b, fixed.size)), idx], axis=1)
-        valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
+        sel, valid = slots
         if ring:  # this device's merged rows, the kept ones marked (the slots are distinct rows)
             rel = sel - share.first  # (negative ones would wrap around in a scatter)
             rel = jnp.where(valid & (rel >= 0) & (rel < share.rows), rel, share.rows)
@@ -167,7 +212,7 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
     dup = None
     if plan.n_dup:
         protected_pos = state.protected_pos
-        dk, dv = rows_kv(p_block, x, protected_pos, pos, config, shards, plan.per_frame)
+        dk, dv = rows_kv(p_block, x, protected_pos, pos, config, shards, plan.per_frame, heads)
         # only protected dst come twice: the authors drop protected src from both lists
         dup_ok = jnp.take(jnp.asarray(plan.partition.is_dst), protected_pos, mode="clip")
         if plan.kv_mode == "select" and not (comp.kv_protect_saliency and comp.protect == "saliency"):
@@ -181,7 +226,7 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
                 valid = jnp.ones(g.shape[:1] + (g.shape[1] - protected_pos.shape[1],), bool)
             valid = jnp.concatenate([valid, dup_ok], axis=1)
             dup = None
-    return Keys(kk, vv, g, valid, dup), state
+    return Keys(kk, vv, g, valid, dup)
 
 
 def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards) -> jax.Array:

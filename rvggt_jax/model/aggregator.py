@@ -181,8 +181,16 @@ def _scan_layers(p: Params, carry: tuple, group: tuple[int, ...], slot: np.ndarr
                          config.rope_freq, dtype=dtype)
         kept_frame = write_slot(kept_frame, x.reshape(b, s, num_tokens, c), k, dtype)
         # the global block updates x in place: after the kept write has read it (else XLA
-        # copies the 4 GiB stream at 1000 frames for the write; docs/memory_layout.md)
-        x = with_dependency(x.reshape(b, s * num_tokens, c), stored(kept_frame))
+        # copies the 4 GiB stream at 1000 frames for the write; docs/memory_layout.md).
+        # The order comes through the block's weights, not as x + 0: XLA:GPU gave that
+        # sum a buffer of its own, a second stream.
+        if len(group) == 1:
+            # a run of one layer is no loop: its slot is a constant, and XLA reads the
+            # zero from x itself, not from the written buffer (XLA:GPU moved the write
+            # after `regime`'s first global block and copied the stream for it)
+            x, kept_frame = jax.lax.optimization_barrier((x, kept_frame))
+        x = x.reshape(b, s * num_tokens, c)
+        p_global = jax.tree.map(lambda w: with_dependency(w, stored(kept_frame)), p_global)
         if state is None:
             x = dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
         else:

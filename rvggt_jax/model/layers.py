@@ -177,7 +177,8 @@ def attention_qkv(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | Rop
     f32 = jnp.float32
     out = []
     for name in parts:
-        t = linear(p[name], x).reshape(b, n, num_heads, c // num_heads)
+        t = linear(p[name], x)
+        t = t.reshape(b, n, num_heads, t.shape[-1] // num_heads)  # (a head group's weights: fewer columns)
         if name in "qk":
             if f"{name}_norm" in p:
                 t = layer_norm(p[f"{name}_norm"], t, dtype=f32)

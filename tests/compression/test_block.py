@@ -90,7 +90,10 @@ CASES = [("regime", 0), ("regime", 10), ("regime", 14), ("regime", 18), ("regime
          ("no_size_bias", 0), ("kv_only", 0), ("avggt", 12), ("merge_only", 0),
          ("regime", 0, dict(merge_ratio=(0.3, 0.3, 0.3))), ("regime", 0, dict(kv_sigma=(2, 2, 2))),
          ("regime", 0, dict(duplicate_protected=True)), ("regime", 10, dict(duplicate_protected=True)),
-         ("regime_paper", 0, dict(duplicate_protected=True)), ("fastvggt", 3, dict(duplicate_protected=True))]
+         ("regime_paper", 0, dict(duplicate_protected=True)), ("fastvggt", 3, dict(duplicate_protected=True)),
+         # the presets run their merging layers in two head groups (HEADS = 2); all heads at once:
+         ("regime", 10, dict(merge_head_groups=1)), ("regime", 14, dict(merge_head_groups=1)),
+         ("fastvggt", 3, dict(duplicate_protected=True, merge_head_groups=1))]
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c[0]}-L{c[1]}" + ("+" if len(c) > 2 else ""))
@@ -125,6 +128,17 @@ def test_block_equals_float64_reference(block_params, case):
         ref = reference_block(block_params, np.asarray(x[bi]), pos, HEADS, cfg.rope_freq, parent,
                               keep[bi] if plan.tile != (1, 1) else None, size_bias=cc.size_bias, extra_pos=extra)
         assert rel_err(out[bi], ref) <= 2e-5, (name, layer)
+
+
+def test_head_groups_split_the_heads_into_contiguous_ranges():
+    from rvggt_jax.compression.merged_layer import head_groups
+
+    assert head_groups(16, 2) == (range(0, 8), range(8, 16))
+    assert head_groups(5, 2) == (range(0, 2), range(2, 5))
+    assert head_groups(1, 2) == (range(0, 1),)
+    assert head_groups(3, 1) == (range(0, 3),)
+    with pytest.raises(ValueError, match="merge_head_groups"):
+        BASE.with_compression("regime", merge_head_groups=0)
 
 
 def test_duplicate_protected_duplicates_only_protected_dst(block_params):

@@ -132,3 +132,20 @@ def test_protection_counts():
     assert stride_protected(100, 0.1).tolist() == list(range(0, 100, 10))
     assert stride_protected(105, 0.1).tolist() == list(range(0, 100, 10))  # N // 10 = 10, first 10
     assert stride_protected(5, 0.1).size == 0
+
+
+@pytest.mark.parametrize("b, p, n, frac", [(2, 50, 10, 0.3), (1, 1000, 200, 0.05), (3, 7, 7, 0.5), (2, 20, 30, 0.5),
+                                           (1, 64, 5, 0.0), (1, 64, 5, 1.0)])
+def test_compaction_is_a_stable_argsort_of_the_flags(b, p, n, frac):
+    """`kv.compact` (running counts and a scatter, no sort) gives the first n entries of a
+    stable argsort of ~valid: the True entries in order, then the False ones."""
+    import jax
+    import jax.numpy as jnp
+
+    from rvggt_jax.compression.kv import compact
+
+    valid = np.random.default_rng(p + n).random((b, p)) < frac
+    order, ok = jax.jit(compact, static_argnums=1)(jnp.asarray(valid), n)
+    want = np.argsort(~valid, axis=-1, kind="stable")[:, :n]
+    np.testing.assert_array_equal(np.asarray(order), want)
+    np.testing.assert_array_equal(np.asarray(ok), np.take_along_axis(valid, want, axis=-1))

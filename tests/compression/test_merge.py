@@ -160,3 +160,24 @@ def test_band_cache_reuse_and_recompute():
     # without cache every merging layer computes
     no_cache = make_compression("no_cache", 24)
     assert all(layer_plan(no_cache, i, Geometry(S, H, W, NS)).match == "compute" for i in range(24))
+
+
+@pytest.mark.parametrize("shape, r", [((2, 100), 37), ((1, 3, 50), 20), ((1, 5000), 4000), ((2, 40), 0),
+                                      ((2, 40), 40), ((1, 7), 1), ((1, 7), 6)])
+def test_select_best_takes_the_set_a_stable_descending_sort_puts_first(shape, r):
+    """`merge.select_best` (no sort: the r-th score found bit by bit) selects the first r
+    of a stable argsort of -score (ties, the protected score, -0.0 against 0.0, negative
+    scores and NaN included); the rest come ranked and listed in index order."""
+    rng = np.random.default_rng(r)
+    s = (rng.integers(-7, 7, shape) / 7).astype(np.float32)  # many ties, both signs
+    s.reshape(-1)[:3] = merge_lib.PROTECTED_SCORE
+    s.reshape(-1)[[4, 5, 6]] = np.nan, -0.0, 0.0
+    merged, rank, rest = jax.jit(merge_lib.select_best, static_argnums=1)(jnp.asarray(s), r)
+    order = np.asarray(jnp.argsort(-jnp.asarray(s), axis=-1, stable=True))
+    want = np.zeros(shape, bool)
+    np.put_along_axis(want, order[..., :r], True, axis=-1)
+    np.testing.assert_array_equal(np.asarray(merged), want)
+    for row in np.ndindex(shape[:-1]):
+        unsel = np.flatnonzero(~want[row])
+        np.testing.assert_array_equal(np.asarray(rest)[row], unsel)
+        np.testing.assert_array_equal(np.asarray(rank)[row][unsel], np.arange(unsel.size))
