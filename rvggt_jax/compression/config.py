@@ -168,7 +168,7 @@ class CompressionConfig:
     dense_layers: tuple[int, ...] = ()
     head_pad_multiple: int = 1
     match_chunk: int = 1024
-    merge_head_groups: int = 2
+    merge_head_groups: int = 4
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

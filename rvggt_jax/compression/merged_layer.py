@@ -35,7 +35,7 @@ from rvggt_jax.model import layers
 from rvggt_jax.model.params import Params
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.attention import attention, log_sizes
-from rvggt_jax.ops.ordering import with_dependency
+from rvggt_jax.ops.ordering import with_dependency, zeros_from
 from rvggt_jax.ops.ring import ring_attention
 from rvggt_jax.ops.shards import FrameShards
 
@@ -69,16 +69,38 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     match, state = layer_match(p_block, x, plan, config, state)
     share = merged_rows(match, plan, state.shards)
     slots, state = key_slots(plan, config, match, state)
-    outs, after = [], match.group
-    for heads in head_groups(config.num_heads, config.compression.merge_head_groups):
-        p_heads = heads_of(p_block, heads, config.head_dim)
-        x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, len(heads), after)
-        keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, len(heads))
-        outs.append(attend(qm, keys, plan, config, state.shards))
-        after = outs[-1]
-    out = outs[0] if len(outs) == 1 else jnp.concatenate(outs, axis=2)  # [B, rows, H, D]
-    # the output projection on the merged rows, then every token takes its group's row
     b, c = x.shape[0], x.shape[-1]
+    groups = head_groups(config.num_heads, config.compression.merge_head_groups)
+
+    def group_attention(x, p_heads, heads, after):
+        """(x, attention output [B, rows, heads, D]) of one group of heads."""
+        x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, heads, after)
+        keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, heads)
+        return x, attend(qm, keys, plan, config, state.shards)
+
+    if len(groups) == 1:
+        x, out = group_attention(x, p_block, config.num_heads, match.group)
+    elif len({len(g) for g in groups}) == 1:
+        # equal groups: one loop, one compiled copy of the group's code (an unrolled loop
+        # would compile the means, keys and attention once per group)
+        heads = len(groups[0])
+        out = zeros_from((b, share.rows, config.num_heads, config.head_dim), config.compute_dtype, match.sizes)
+
+        def step(g, carry):
+            x, out = carry
+            # the group's sums are made after the previous group's output (the carry)
+            x, o = group_attention(x, heads_at(p_block, g * heads, heads, config.head_dim), heads, out)
+            return x, jax.lax.dynamic_update_slice_in_dim(out, o.astype(out.dtype), g * heads, 2)
+
+        x, out = jax.lax.fori_loop(0, len(groups), step, (x, out))
+    else:
+        outs, after = [], match.group
+        for g in groups:
+            x, o = group_attention(x, heads_at(p_block, g.start, len(g), config.head_dim), len(g), after)
+            outs.append(o)
+            after = o
+        out = jnp.concatenate(outs, axis=2)  # [B, rows, H, D]
+    # the output projection on the merged rows, then every token takes its group's row
     proj = p_block["attn"]["proj"]
     out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, share.rows, c),),
                             bytes_per_row=b * c * 4 * 4)
@@ -92,17 +114,15 @@ def head_groups(num_heads: int, groups: int) -> tuple[range, ...]:
     return tuple(range(a, b) for a, b in zip(edges[:-1], edges[1:]))
 
 
-def heads_of(p_block: Params, heads: range, head_dim: int) -> Params:
-    """The block's parameters with its q, k, v projections cut to the heads `heads`
-    (their output columns): a head group's projections. The norms (shared by the heads)
-    and the output projection stay whole."""
+def heads_at(p_block: Params, first, count: int, head_dim: int) -> Params:
+    """The block's parameters with its q, k, v projections cut to the `count` heads from
+    `first` (static or traced): their output columns, a head group's projections. The
+    norms (shared by the heads) and the output projection stay whole."""
     attn = p_block["attn"]
-    if len(heads) * head_dim == attn["q"]["kernel"].shape[-1]:
-        return p_block
-    cols = slice(heads.start * head_dim, heads.stop * head_dim)
 
     def cut(lin):
-        return {name: (w[..., cols] if name in ("kernel", "bias") else w) for name, w in lin.items()}
+        return {name: (jax.lax.dynamic_slice_in_dim(w, first * head_dim, count * head_dim, w.ndim - 1)
+                       if name in ("kernel", "bias") else w) for name, w in lin.items()}
 
     return {**p_block, "attn": {**attn, **{name: cut(attn[name]) for name in "qkv"}}}
 
@@ -140,20 +160,25 @@ def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Mat
                plan: LayerPlan, config, shards: FrameShards, heads: int, after: jax.Array):
     """(x, q, k, v): the group means [B, rows, heads, D] of q, k and v (after qk-norm and
     RoPE) of this device's merged rows, for the heads p_block's projections make, x
-    passing through each loop. One of q, k, v at a time, each summed after the previous
-    mean (the first after `after`), so that one float32 sum exists at once (the norm is
-    recomputed, a small price)."""
+    passing through the loops; the float32 sums made after `after`. On one device q, k
+    and v are summed in one pass over the tokens (three sums of a head group at once:
+    the head groups bound them); over devices one of q, k, v at a time, each after the
+    previous mean (each is projected for all of the device's tokens before its sums are
+    reduce-scattered)."""
     b, c = x.shape[0], x.shape[-1]
     dtype = config.compute_dtype
 
+    def rows(parts):
+        return layers.block_qkv_rows(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
+
+    if not shards.sharded:
+        return merge_lib.merge_map(rows("qkv"), (x, pos.cos, pos.sin), match, plan.n_query,
+                                   bytes_per_row=c * 4 * 2 + 3 * c * 4, dep=after, owned=True)
+
     def means(x, parts, after):
-        fn = layers.block_qkv_rows(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
-        if not shards.sharded:
-            return merge_lib.merge_map(fn, (x, pos.cos, pos.sin), match, plan.n_query, bytes_per_row=c * 4 * 2,
-                                       dep=after, owned=True)
-        # over devices: each device projects its tokens, the group sums reduce-scattered
-        xs, (vals,) = chunks.map_tokens_through(fn, x, (pos.cos, pos.sin), bytes_per_row=b * c * 4 * 2 + c * 4,
-                                                dep=after)
+        # each device projects its tokens, the group sums reduce-scattered
+        xs, (vals,) = chunks.map_tokens_through(rows(parts), x, (pos.cos, pos.sin),
+                                                bytes_per_row=b * c * 4 * 2 + c * 4, dep=after)
         sums = shards.ring_sum_scatter(
             lambda block, acc: merge_lib.block_sums(vals, share.group - block * share.rows, share.rows, into=acc))
         return xs, merge_lib.materialized((sums / share.sizes[..., None, None]).astype(vals.dtype))

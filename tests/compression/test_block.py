@@ -141,6 +141,24 @@ def test_head_groups_split_the_heads_into_contiguous_ranges():
         BASE.with_compression("regime", merge_head_groups=0)
 
 
+@pytest.mark.parametrize("layer", [0, 10])
+def test_head_groups_equal_all_heads_at_once(layer):
+    """Three heads in two groups (1 + 2: unrolled) and in three (one loop over equal
+    groups) give the output of all heads at once (merge_head_groups=1)."""
+    c, heads = 48, 3
+    p = random_block_params(jax.random.PRNGKey(1), c, heads)
+    rng = np.random.default_rng(layer)
+    x = jnp.asarray(rng.standard_normal((2, N, c)), jnp.float32)
+    sal = jnp.asarray(rng.random((2, S, H * W)), jnp.float32)
+    pos = global_positions(S, H, W)
+    outs = []
+    for groups in (1, 2, 3):
+        cfg = VGGTConfig(embed_dim=c, num_heads=heads).with_compression("regime", merge_head_groups=groups)
+        state = init_state(cfg.compression, sal, Geometry(S, H, W, NS))
+        outs.append(jax.jit(lambda x: global_block(p, x, pos, layer, cfg, state)[0])(x))
+    assert rel_err(outs[1], outs[0]) <= 1e-6 and rel_err(outs[2], outs[0]) <= 1e-6
+
+
 def test_duplicate_protected_duplicates_only_protected_dst(block_params):
     """Hand-computed: 2 frames of 2 x 4 patches (+5 special tokens each), N = 26.
     dst (seed -1: top-left of each 2 x 2 cell) = frame 0 (0-12), frame 1's specials

@@ -90,3 +90,19 @@ def test_whole_tree_cast_to_bf16_runs_with_heads_in_float32(tiny, golden):
         assert out[key].dtype == jnp.float32, key
         err = rel_err(out[key], golden[key])
         assert err <= 2 * UPSTREAM_BF16[key], (key, err)
+
+
+def test_rounding_by_bits_equals_the_bfloat16_cast():
+    """`kept.rounded` (the final stream as its bfloat16 slot would hold it, by bits, no
+    cast) equals a cast to bfloat16 and back, over magnitudes, ties, overflow, zeros,
+    infinities and NaN."""
+    from rvggt_jax.model.kept import rounded
+
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal(20000).astype(np.float32) * (10.0 ** rng.integers(-40, 38, 20000)).astype(np.float32)
+    x = np.concatenate([x, np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-45, 3.4e38, -3.4e38,
+                                     1.00390625, 1.01171875], np.float32)])
+    got = np.asarray(jax.jit(lambda v: rounded(v, jnp.bfloat16))(x))
+    want = np.asarray(jnp.asarray(x).astype(jnp.bfloat16).astype(jnp.float32))
+    np.testing.assert_array_equal(got, want)
+    assert rounded(jnp.asarray(x), jnp.float16).dtype == jnp.float32
