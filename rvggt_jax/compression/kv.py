@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.compression.config import CompressionConfig, LayerKind
-from rvggt_jax.compression.merge import Match
+from rvggt_jax.compression.merge import Match, compact
 from rvggt_jax.compression.plan import LayerPlan
 
 
@@ -27,23 +27,6 @@ class KVSlots(NamedTuple):
 
     index: jax.Array  # [B, n_dyn] int32 indices into the query layout
     valid: jax.Array  # [B, n_dyn] bool: the slot is filled
-
-
-def compact(valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
-    """valid [B, P] bool -> (indices [B, n] of the first n True entries, then False ones;
-    their validity [B, n]). Stable: True entries keep their order."""
-    # Each entry's place in that order, from running counts, then scattered: a stable
-    # argsort of ~valid, without a sort (XLA:GPU compiles a sort it has no library call
-    # for, as in a compile without the device, into a kernel that takes seconds to build).
-    b, p = valid.shape
-    n = min(n, p)
-    ones = valid.astype(jnp.int32)
-    trues_before = jnp.cumsum(ones, axis=-1) - ones
-    falses_before = jnp.arange(p, dtype=jnp.int32) - trues_before
-    place = jnp.where(valid, trues_before, jnp.sum(ones, axis=-1, keepdims=True) + falses_before)
-    order = jnp.zeros((b, n), jnp.int32).at[jnp.arange(b)[:, None], place].set(
-        jnp.broadcast_to(jnp.arange(p, dtype=jnp.int32), (b, p)), mode="drop", unique_indices=True)
-    return order, jnp.take_along_axis(valid, order, axis=-1, mode="promise_in_bounds")
 
 
 def dynamic_slots(plan: LayerPlan, comp: CompressionConfig, match: Match | None,

@@ -224,6 +224,23 @@ def ordered_bits(score: jax.Array) -> jax.Array:
     return jnp.where(jnp.isnan(score), jnp.zeros((), utype), bits ^ flip)
 
 
+def compact(valid: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
+    """valid [B, P] bool -> (indices [B, n] of the first n True entries, then False ones;
+    their validity [B, n]). Stable: True entries keep their order."""
+    # Each entry's place in that order, from running counts, then scattered: a stable
+    # argsort of ~valid, without a sort (XLA:GPU compiles a sort it has no library call
+    # for, as in a compile without the device, into a kernel that takes seconds to build).
+    b, p = valid.shape
+    n = min(n, p)
+    ones = valid.astype(jnp.int32)
+    trues_before = jnp.cumsum(ones, axis=-1) - ones
+    falses_before = jnp.arange(p, dtype=jnp.int32) - trues_before
+    place = jnp.where(valid, trues_before, jnp.sum(ones, axis=-1, keepdims=True) + falses_before)
+    order = jnp.zeros((b, n), jnp.int32).at[jnp.arange(b)[:, None], place].set(
+        jnp.broadcast_to(jnp.arange(p, dtype=jnp.int32), (b, p)), mode="drop", unique_indices=True)
+    return order, jnp.take_along_axis(valid, order, axis=-1, mode="promise_in_bounds")
+
+
 def select_best(score: jax.Array, r: int) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The r highest scores of each row of score [..., n], ties to the lower index (the
     set a stable sort by descending score puts first) -> (merged [..., n] bool, rank
@@ -259,10 +276,7 @@ def select_best(score: jax.Array, r: int) -> tuple[jax.Array, jax.Array, jax.Arr
     rest = (~merged).astype(jnp.int32)
     rank = jnp.cumsum(rest, axis=-1) - rest
     u = n - max(0, min(r, n))
-    flat_rank = jnp.where(merged, u, rank).reshape(-1, n)
-    rows = flat_rank.shape[0]
-    unselected = jnp.zeros((rows, u), jnp.int32).at[jnp.arange(rows)[:, None], flat_rank].set(
-        jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (rows, n)), mode="drop", unique_indices=True)
+    unselected, _ = compact(~merged.reshape(-1, n), u)
     return merged, rank, unselected.reshape(lead + (u,))
 
 

@@ -137,12 +137,12 @@ def test_protection_counts():
 @pytest.mark.parametrize("b, p, n, frac", [(2, 50, 10, 0.3), (1, 1000, 200, 0.05), (3, 7, 7, 0.5), (2, 20, 30, 0.5),
                                            (1, 64, 5, 0.0), (1, 64, 5, 1.0)])
 def test_compaction_is_a_stable_argsort_of_the_flags(b, p, n, frac):
-    """`kv.compact` (running counts and a scatter, no sort) gives the first n entries of a
+    """`merge.compact` (running counts and a scatter, no sort) gives the first n entries of a
     stable argsort of ~valid: the True entries in order, then the False ones."""
     import jax
     import jax.numpy as jnp
 
-    from rvggt_jax.compression.kv import compact
+    from rvggt_jax.compression.merge import compact
 
     valid = np.random.default_rng(p + n).random((b, p)) < frac
     order, ok = jax.jit(compact, static_argnums=1)(jnp.asarray(valid), n)
