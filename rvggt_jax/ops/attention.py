@@ -1,6 +1,7 @@
 """The one attention op of the model: every attention (frame, global, compressed with the
 size bias, DINO, camera trunk, tracker) calls `attention`; ring attention (`ops/ring.py`)
-calls `attention_with_lse` for each share of the keys.
+calls `attention_with_lse` for each share of the keys, the same kernels with their
+log-sum-exp.
 
     out = attention(q, k, v)                       # softmax(q k^T / sqrt(D)) v
     out = attention(q, k, v, key_bias=log_g)       # + an additive bias per key [B, Nk]
@@ -56,9 +57,9 @@ import numpy as np
 from rvggt_jax.ops.bits import on_cpu
 from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
-from rvggt_jax.ops.kernels.fused import CUDNN_MAX_HEAD_DIM, fused_attention
+from rvggt_jax.ops.kernels.fused import CUDNN_MAX_HEAD_DIM, fused_attention, fused_attention_with_lse
 from rvggt_jax.ops.kernels.names import HALF_ONLY, KERNELS
-from rvggt_jax.ops.kernels.tpu_flash import tpu_flash_attention
+from rvggt_jax.ops.kernels.tpu_flash import tpu_flash_attention, tpu_flash_attention_with_lse
 
 IMPLEMENTATIONS = KERNELS
 
@@ -157,18 +158,53 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
 
 
 def attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
-                       block_bytes: int | None = None, out_dtype: Any = None) -> tuple[jax.Array, jax.Array]:
+                       block_bytes: int | None = None, out_dtype: Any = None, *,
+                       implementation: str | None = None) -> tuple[jax.Array, jax.Array]:
     """(attention [B, Nq, H, Dv] in `out_dtype` (default q's), the log-sum-exp of every
     query's logits [B, Nq, H] float32): what ring attention folds partial results with.
-    The blocked kernel on every platform (its 16-bit workaround on a CPU only): cuDNN's
-    and the TPU kernel's softmax statistics are not public API (docs/accelerators.md)."""
+    The kernel is chosen as in `attention` (`implementation`, else the scope's, else
+    "auto"), each in its log-sum-exp form: the blocked kernel's own; cuDNN's statistics
+    (`kernels/fused.py`: JAX's cuDNN rules under a VJP that takes the log-sum-exp's
+    cotangent); the Pallas TPU kernel's (`kernels/tpu_flash.py`, the same for its
+    backward kernels). Differentiable in both outputs."""
+    if implementation is None:
+        implementation = current_kernel()
+        if implementation in HALF_ONLY and not _is_half(q.dtype):
+            implementation = "auto"
+    check_kernel(implementation)
+    _check_operands(q, k, v, key_bias)
     block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
     bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
+    out_dtype = q.dtype if out_dtype is None else out_dtype
 
-    def run(bits):
-        return lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=bits)
+    def run(name):
+        return functools.partial(_run_with_lse, name, q, k, v, bias32, float(scale), block_bytes, out_dtype)
 
-    return on_cpu(run(True), run(False))
+    if implementation != "auto":
+        return run(check_kernel(implementation, q.dtype))()
+    branches = {}
+    for platform in compilable_platforms():
+        name = kernel_for(platform, q.dtype, q.shape[-1])
+        if name != "blocked":
+            branches[platform] = run(name)
+    if not branches:
+        return run("blocked")()
+    return jax.lax.platform_dependent(cpu=run("blocked"), default=run("blocked"), **branches)
+
+
+def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, out_dtype):
+    """Kernel `name`'s (attention in `out_dtype`, lse) on checked operands."""
+    if name == "blocked":
+        def blocked_run(bits):
+            out, lse = blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=bits)
+            return out.astype(out_dtype), lse
+
+        return on_cpu(lambda: blocked_run(True), lambda: blocked_run(False))
+    if name == "tpu_flash":
+        out, lse = tpu_flash_attention_with_lse(q, k, v, bias32, scale, NEG_BIAS)
+    else:
+        out, lse = fused_attention_with_lse(q, k, v, bias32, scale, name, NEG_BIAS)
+    return out.astype(out_dtype), lse
 
 
 def _run(name: str, q, k, v, bias32, scale: float, block_bytes: int) -> jax.Array:

@@ -148,3 +148,56 @@ def test_tpu_gradient_takes_the_pallas_backward():
     text = _grad_text(device("tpu-v6e"), jnp.float32)
     assert text.count("tpu_custom_call") >= 3  # forward, dK/dV and dQ kernels
     assert "stablehlo.while" not in text
+
+
+# ---- the log-sum-exp forms of the accelerator kernels (ring attention's shares) ---------
+
+def _lse_loss(fn, w, wl):
+    def f(q, k, v, b):
+        out, lse = fn(q, k, v, b)
+        return jnp.sum(out.astype(jnp.float32) * w) + jnp.sum(jnp.sin(lse) * wl)
+    return f
+
+
+@pytest.mark.parametrize("kernel", ["xla", "tpu_flash"])
+def test_accelerator_kernels_with_lse_pass_both_cotangents(monkeypatch, kernel):
+    # "xla": cuDNN's interface (forward with its statistics; a backward from the output it
+    # is given) in plain XLA, so the VJP that feeds the lse cotangent through a spare v
+    # column is checked here; "tpu_flash": the Pallas kernels in Pallas' interpreter
+    if kernel == "tpu_flash":
+        from jax.experimental import pallas as pl
+
+        call = pl.pallas_call
+        monkeypatch.setattr(pl, "pallas_call", lambda *a, **k: call(*a, **{**k, "interpret": True}))
+    q, k, v, bias, w = _operands(b=1, nq=37, nk=45, h=2, d=8, dv=8, seed=5)
+    wl = jnp.asarray(np.random.default_rng(6).standard_normal(q.shape[:3]), jnp.float32)
+    ours = _lse_loss(lambda q, k, v, b: attn.attention_with_lse(q, k, v, b, 0.3, out_dtype=jnp.float32,
+                                                                implementation=kernel), w, wl)
+    out, lse = jax.jit(lambda *a: attn.attention_with_lse(*a, 0.3, implementation=kernel))(q, k, v, bias)
+    ref_out, ref_lse = reference(q, k, v, bias, 0.3)
+    assert out.shape == q.shape[:3] + (8,) and lse.shape == q.shape[:3] and lse.dtype == jnp.float32
+    assert rel(out, ref_out) <= TOL and rel(lse, ref_lse) <= TOL
+    got = jax.jit(jax.grad(ours, (0, 1, 2, 3)))(q, k, v, bias)
+    want = jax.jit(jax.grad(_lse_loss(lambda q, k, v, b: reference(q, k, v, b, 0.3), w, wl), (0, 1, 2, 3)))(
+        q, k, v, bias)
+    for name, g, r in zip("qkvb", got, want):
+        assert g.shape == r.shape and rel(g, r) <= TOL, (name, rel(g, r))
+
+
+def _lse_grad_text(dev, dtype):
+    args = [on(dev, (1, n, 2, 64), dtype) for n in (40, 57, 57)] + [on(dev, (1, 57), jnp.float32)]
+
+    def loss(q, k, v, b):
+        out, lse = attn.attention_with_lse(q, k, v, b, 0.125, out_dtype=jnp.float32)
+        return jnp.sum(out) + jnp.sum(lse)
+
+    return jax.jit(jax.grad(loss, (0, 1, 2, 3))).lower(*args).as_text()
+
+
+def test_ring_shares_take_the_accelerator_kernels_with_their_backwards():
+    gpu = _lse_grad_text(device("h200"), jnp.bfloat16)
+    backward = gpu.count("__cudnn$fmhaSoftmaxBackward")
+    assert backward >= 1 and gpu.count("__cudnn$fmhaSoftmax") > backward  # and the forward
+    assert "stablehlo.while" not in gpu
+    tpu = _lse_grad_text(device("tpu-v6e"), jnp.float32)
+    assert tpu.count("tpu_custom_call") >= 3 and "stablehlo.while" not in tpu

@@ -128,3 +128,118 @@ def _odd_lengths_bwd(scale, neg_bias, implementation, vjp, g):
 
 
 odd_lengths.defvjp(_odd_lengths_fwd, _odd_lengths_bwd)
+
+
+# ---------------------------------------------------------------------------------------
+# With the log-sum-exp (ring attention's partial results). `jax.nn.dot_product_attention`
+# returns no softmax statistics; JAX's cuDNN module does (`return_residual`), but its
+# backward drops the statistics' cotangent, which ring attention's fold needs. So the
+# forward and backward rules of that module are called here, under a VJP of our own.
+# ---------------------------------------------------------------------------------------
+
+def fused_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
+                             implementation: str, neg_bias: float) -> tuple[jax.Array, jax.Array]:
+    """(attention [B, Nq, H, Dv] in q's dtype, the log-sum-exp of every query's logits
+    [B, Nq, H] float32) with the key bias [B, Nk] folded in, differentiable in both.
+    implementation "cudnn" (cuDNN's flash kernel and its statistics) or "xla" (the same
+    interface in plain XLA, forming all logits: it checks the VJP below on a CPU).
+
+    Token counts are made even (`even_lengths`: cuDNN's wrapper refuses odd ones when its
+    statistics are returned), and the head dimension has a spare zero column in v (the
+    VJP writes the lse cotangent there)."""
+    nq, dv = q.shape[1], v.shape[-1]
+    q, k, v, key_bias = even_lengths(q, k, v, key_bias, neg_bias)
+    multiple = CUDNN_HEAD_MULTIPLE if implementation == "cudnn" else 1
+    qf, kf, vf = fold_key_bias(q, k, v, key_bias, scale, multiple)
+    if vf.shape[-1] == dv:  # no spare column: one more block of zero columns
+        qf, kf, vf = (jnp.pad(x, ((0, 0), (0, 0), (0, 0), (0, multiple))) for x in (qf, kf, vf))
+    if implementation == "cudnn" and qf.shape[-1] > CUDNN_MAX_HEAD_DIM:
+        raise ValueError(f"cuDNN attention with its log-sum-exp takes head dims up to {CUDNN_MAX_HEAD_DIM} "
+                         f"(with the bias columns and a spare one); got {qf.shape[-1]}")
+    out, lse = _with_lse(qf, kf, vf, scale, dv, implementation)
+    return out[:, :nq, :, :dv].astype(q.dtype), lse[:, :nq]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5))
+def _with_lse(q, k, v, scale, dv, implementation):
+    """[B, N, H, Dp] operands (v's column `dv` zero) -> (out [B, Nq, H, Dp], lse
+    [B, Nq, H] float32)."""
+    out, stats = _LSE_KERNELS[implementation][0](q, k, v, scale)
+    return out, stats.transpose(0, 2, 1)
+
+
+def _with_lse_fwd(q, k, v, scale, dv, implementation):
+    out, stats = _LSE_KERNELS[implementation][0](q, k, v, scale)
+    return (out, stats.transpose(0, 2, 1)), (q, k, v, out, stats)
+
+
+def _with_lse_bwd(scale, dv, implementation, res, cotangents):
+    """The kernel's backward forms the logits' cotangent p_ij (dout_i . v_j - di_i) with
+    di_i = out_i . dout_i from the output it is given. An lse cotangent g adds p_ij g_i
+    (d lse_i / d s_ij = p_ij). v's column `dv` is zero, so a value there in dout changes
+    no dout_i . v_j; with g there in dout and -1 there in out, di_i becomes di_i - g_i."""
+    q, k, v, out, stats = res
+    dout, dlse = cotangents
+    dout = dout.at[..., dv].set(dlse.astype(dout.dtype))
+    out = out.at[..., dv].set(-1)
+    dq, dk, dvv = _LSE_KERNELS[implementation][1](q, k, v, out, stats, dout, scale)
+    return dq, dk, dvv
+
+
+_with_lse.defvjp(_with_lse_fwd, _with_lse_bwd)
+
+
+def _cudnn_rules():
+    from jax._src.cudnn import fused_attention_stablehlo as cudnn  # noqa: PLC0415 - CUDA installs only
+
+    return cudnn
+
+
+def _cudnn_args(q, scale):
+    cudnn = _cudnn_rules()
+    empty = jnp.zeros(0, q.dtype)
+    statics = dict(scale=scale, seed=42, dropout_rate=0.0, variadic_args=(False, False),
+                   mask_type=cudnn.MaskType.NO_MASK, layout=cudnn.AttentionLayout.BTNH.value,
+                   sliding_window_length=None)
+    return cudnn, (empty,) * 7, statics  # bias, q/kv seqlens, q/kv offsets, page tables
+
+
+def _cudnn_forward(q, k, v, scale):
+    """cuDNN's flash forward in training mode: (out [B, N, H, D], stats [B, H, N] float32,
+    the log-sum-exp of the scaled logits)."""
+    cudnn, empties, statics = _cudnn_args(q, scale)
+    (out, stats), _ = cudnn._dot_product_attention_fwd_rule(  # noqa: SLF001
+        q, k, v, *empties, **statics, cudnn_version=cudnn.check_cudnn_version(), return_residual=True)
+    return out, stats
+
+
+def _cudnn_backward(q, k, v, out, stats, dout, scale):
+    cudnn, empties, statics = _cudnn_args(q, scale)
+    res = (q, k, v, *empties, stats, out)
+    grads = cudnn._dot_product_attention_bwd_rule(  # noqa: SLF001
+        *statics.values(), cudnn.check_cudnn_version(), False, res, dout)
+    return grads[:3]
+
+
+def _xla_forward(q, k, v, scale):
+    s = jnp.einsum("bqhd,bkhd->bhqk", q.astype(jnp.float32), k.astype(jnp.float32)) * np.float32(scale)
+    stats = jax.nn.logsumexp(s, axis=-1)
+    out = jnp.einsum("bhqk,bkhd->bqhd", jnp.exp(s - stats[..., None]), v.astype(jnp.float32))
+    return out.astype(q.dtype), stats
+
+
+def _xla_backward(q, k, v, out, stats, dout, scale):
+    """A flash-attention backward from (out, stats, dout), as cuDNN's computes it."""
+    f32 = [x.astype(jnp.float32) for x in (q, k, v, out, dout)]
+    q32, k32, v32, o32, do32 = f32
+    s = jnp.einsum("bqhd,bkhd->bhqk", q32, k32) * np.float32(scale)
+    p = jnp.exp(s - stats[..., None])
+    di = jnp.einsum("bqhd,bqhd->bhq", o32, do32)
+    ds = p * (jnp.einsum("bqhd,bkhd->bhqk", do32, v32) - di[..., None]) * np.float32(scale)
+    dq = jnp.einsum("bhqk,bkhd->bqhd", ds, k32)
+    dk = jnp.einsum("bhqk,bqhd->bkhd", ds, q32)
+    dv = jnp.einsum("bhqk,bqhd->bkhd", p, do32)
+    return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype)
+
+
+_LSE_KERNELS = {"cudnn": (_cudnn_forward, _cudnn_backward), "xla": (_xla_forward, _xla_backward)}

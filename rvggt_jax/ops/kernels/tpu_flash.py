@@ -10,6 +10,7 @@ up to 128. It carries its own backward (flash attention's, blockwise: O(N d) mem
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -44,3 +45,79 @@ def tpu_flash_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.
                          f"got {qf.shape[-1]}")
     out = pallas_flash.flash_attention(*(x.transpose(0, 2, 1, 3) for x in (qf, kf, vf)), sm_scale=scale)
     return out.transpose(0, 2, 1, 3)[:, :nq, :, :dv].astype(q.dtype)
+
+
+def tpu_flash_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
+                                 neg_bias: float) -> tuple[jax.Array, jax.Array]:
+    """`tpu_flash_attention` and the log-sum-exp of every query's logits: (out
+    [B, Nq, H, Dv] in q's dtype, lse [B, Nq, H] float32), what ring attention folds
+    partial results with. Differentiable in both outputs (`_flash_with_lse`)."""
+    b, nq, h, _ = q.shape
+    nk, dv = k.shape[1], v.shape[-1]
+    pq, pk = BLOCK * math.ceil(nq / BLOCK) - nq, BLOCK * math.ceil(nk / BLOCK) - nk
+    bias = jnp.zeros((b, nk), jnp.float32) if key_bias is None else key_bias.astype(jnp.float32)
+    bias = jnp.pad(bias, ((0, 0), (0, pk)), constant_values=neg_bias)
+
+    def pad_rows(x, n):
+        return jnp.pad(x, ((0, 0), (0, n), (0, 0), (0, 0)))
+
+    qf, kf, vf = fold_key_bias(pad_rows(q, pq), pad_rows(k, pk), pad_rows(v, pk), bias, scale, HEAD_MULTIPLE)
+    if qf.shape[-1] > MAX_HEAD_DIM:
+        raise ValueError(f"the TPU flash kernel takes head dims up to {MAX_HEAD_DIM} (with the bias columns); "
+                         f"got {qf.shape[-1]}")
+    out, lse = _flash_with_lse(*(x.transpose(0, 2, 1, 3) for x in (qf, kf, vf)), scale)
+    return out.transpose(0, 2, 1, 3)[:, :nq, :, :dv].astype(q.dtype), lse.transpose(0, 2, 1)[:, :nq]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _flash_with_lse(q, k, v, scale):
+    """The Pallas kernel on [B, H, N, D] operands with its softmax statistics: (out,
+    lse [B, H, Nq] float32). The kernel's own entry point returns them only undifferentiated
+    (`save_residuals`); its backward kernels take the row term di = rowsum(out * dout)
+    as an argument, and an lse cotangent enters exactly there (below)."""
+    return _forward(q, k, v, scale)[:2]
+
+
+def _forward(q, k, v, scale):
+    from jax.experimental.pallas.ops.tpu import flash_attention as pallas_flash
+
+    sizes = _block_sizes()
+    o, l, m = pallas_flash._flash_attention_impl(  # noqa: SLF001 - the kernel with its statistics
+        q, k, v, None, None, True, False, scale, sizes.block_b, sizes.block_q, sizes.block_k_major, sizes.block_k,
+        False)
+    return o, m + jnp.log(l), l, m
+
+
+def _flash_with_lse_fwd(q, k, v, scale):
+    o, lse, l, m = _forward(q, k, v, scale)
+    return (o, lse), (q, k, v, o, l, m)
+
+
+def _flash_with_lse_bwd(scale, res, cotangents):
+    """d lse_i / d s_ij = p_ij, so an lse cotangent g adds p_ij * g_i to the logits'
+    cotangent p_ij * (dp_ij - di_i): the kernels' di becomes di - g."""
+    from jax.experimental.pallas.ops.tpu import flash_attention as pallas_flash
+
+    q, k, v, o, l, m = res
+    do, dlse = cotangents
+    sizes = _block_sizes()
+    di = jnp.sum(o.astype(jnp.float32) * do.astype(jnp.float32), axis=-1) - dlse.astype(jnp.float32)
+    mask = pallas_flash.DEFAULT_MASK_VALUE
+    dk, dv = pallas_flash._flash_attention_bwd_dkv(  # noqa: SLF001
+        q, k, v, None, None, l, m, do, di, block_q_major=sizes.block_q_major_dkv, block_k_major=sizes.block_k_major_dkv,
+        block_k=sizes.block_k_dkv, block_q=sizes.block_q_dkv, sm_scale=scale, causal=False, mask_value=mask,
+        debug=False)
+    dq, _ = pallas_flash._flash_attention_bwd_dq(  # noqa: SLF001
+        q, k, v, None, None, l, m, do, di, block_q_major=sizes.block_q_dq, block_k_major=sizes.block_k_major_dq,
+        block_k=sizes.block_k_dq, sm_scale=scale, causal=False, mask_value=mask, debug=False)
+    return dq, dk, dv
+
+
+_flash_with_lse.defvjp(_flash_with_lse_fwd, _flash_with_lse_bwd)
+
+
+def _block_sizes():
+    from jax.experimental.pallas.ops.tpu import flash_attention as pallas_flash
+
+    # the kernel's defaults (every block 128 rows), forward and backward
+    return pallas_flash.BlockSizes.get_default(1, 1, BLOCK, BLOCK, BLOCK)
