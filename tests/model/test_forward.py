@@ -122,7 +122,9 @@ def test_one_compilation_per_input_shape(tiny, golden):
         jax.block_until_ready((a, b))
         assert len(traces) == 1 and fwd._cache_size() == 1
         assert not np.allclose(a["depth"], b["depth"])  # really ran on the new images
-        fwd(params, images[:, :1], config)  # a new shape is a new compilation
+        # a new shape is a new compilation: jit traces it anew (traced and lowered here,
+        # not compiled: the trace is what jit's cache is keyed on)
+        fwd.trace(params, images[:, :1], config).lower()
         assert len(traces) == 2
 
 
