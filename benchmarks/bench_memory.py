@@ -95,6 +95,25 @@ def _reports(args, **target):
                 gc.collect()
 
 
+def warm_up(target: str) -> float:
+    """Compile one small attention program for `target` first and return its seconds: the
+    compiler's one-time start-up in this process (XLA:GPU's LLVM, ptxas and cuDNN, libtpu)
+    then lands in no preset's compile time, so the presets' times compare whichever
+    compiles first."""
+    from rvggt_jax.ops.attention import attention
+    from rvggt_jax.planning.targets import get_target, target_device
+
+    x = jax.ShapeDtypeStruct((1, 256, 2, 64), jnp.bfloat16,
+                             sharding=jax.sharding.SingleDeviceSharding(target_device(target)))
+    t0 = time.perf_counter()
+    try:
+        jax.jit(lambda q: attention(q, q, q)).lower(x).compile(
+            compiler_options=get_target(target).options())
+    except Exception as e:  # noqa: BLE001 - a failed warm-up only leaves the start-up in the first row
+        print(f"{target}: warm-up failed ({type(e).__name__}: {str(e)[:200]})", flush=True)
+    return time.perf_counter() - t0
+
+
 def _print(row: str) -> str:
     print(row, flush=True)
     return row
@@ -111,6 +130,7 @@ def plan_targets(args) -> list[str]:
             "memory GiB | fits | attention | compile s |",
             "|---|---:|---|---|---|---:|---:|---:|---:|---:|---|---|---:|"]
     for target in args.target:
+        print(f"{target}: warm-up compile {warm_up(target):.1f} s (not in any row)", flush=True)
         for s, dtype, preset, rep in _reports(args, target=target, devices=args.devices):
             fits = {True: "yes", False: "no (XLA:TPU refused it)" if rep.exhausted else "no", None: "?"}[rep.fits]
             rows.append(_print(

@@ -201,3 +201,40 @@ def test_ring_shares_take_the_accelerator_kernels_with_their_backwards():
     assert "stablehlo.while" not in gpu
     tpu = _lse_grad_text(device("tpu-v6e"), jnp.float32)
     assert tpu.count("tpu_custom_call") >= 3 and "stablehlo.while" not in tpu
+
+
+def _ring_grad_text(target, dtype):
+    """The gradient of ring attention over 2 devices of `target` that are not here
+    (lowered, not compiled): queries and key shares split over a "frames" mesh, 5
+    replicated extra keys."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+    from rvggt_jax.ops.ring import ring_attention
+    from rvggt_jax.ops.shards import FrameShards
+    from rvggt_jax.planning.targets import target_devices
+
+    mesh = Mesh(np.array(target_devices(target, 2)), ("frames",))
+    shards = FrameShards(2, 2, "frames")
+    row, rep = NamedSharding(mesh, P(None, "frames")), NamedSharding(mesh, P())
+    args = ([jax.ShapeDtypeStruct((1, 2 * 48, 2, 64), dtype, sharding=row)] * 3
+            + [jax.ShapeDtypeStruct((1, 2 * 48), jnp.float32, sharding=row)]
+            + [jax.ShapeDtypeStruct((1, 5, 2, 64), dtype, sharding=rep)] * 2
+            + [jax.ShapeDtypeStruct((1, 5), jnp.float32, sharding=rep)])
+
+    def loss(q, k, v, b, ek, ev, eb):
+        fn = jax.shard_map(lambda *a: ring_attention(*a[:4], shards, (a[4:],)), mesh=mesh,
+                           in_specs=(P(None, "frames"),) * 4 + (P(),) * 3, out_specs=P(None, "frames"),
+                           check_vma=False)
+        return jnp.sum(fn(q, k, v, b, ek, ev, eb).astype(jnp.float32))
+
+    return jax.jit(jax.grad(loss, range(7))).lower(*args).as_text()
+
+
+def test_the_ring_on_accelerators_takes_their_kernels_for_every_share():
+    # the own share, the share passed in the ring's loop, the extra keys: three forward
+    # calls and three backward calls of the kernel
+    gpu = _ring_grad_text("h200", jnp.bfloat16)
+    assert gpu.count("__cudnn$fmhaSoftmaxBackward") >= 3
+    assert gpu.count("__cudnn$fmhaSoftmax") - gpu.count("__cudnn$fmhaSoftmaxBackward") >= 3
+    tpu = _ring_grad_text("tpu-v6e", jnp.float32)
+    assert tpu.count("tpu_custom_call") >= 9  # forward, dK/dV and dQ per share
