@@ -133,6 +133,17 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
     to every query's logits; NEG_BIAS removes a key). Returns [B, Nq, H, Dv] in q's
     dtype. `scale` defaults to 1/sqrt(D); `implementation` to `current_kernel()`.
     """
+    implementation = _requested(implementation, q, k, v, key_bias)
+    scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
+    bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
+    block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
+    return _dispatch(implementation, q, lambda name: functools.partial(_run, name, q, k, v, bias32, scale,
+                                                                       block_bytes))
+
+
+def _requested(implementation: str | None, q, k, v, key_bias) -> str:
+    """The kernel name a call asks for (its own, else the scope's), checked with the
+    operands."""
     if implementation is None:
         implementation = current_kernel()
         # a scope's 16-bit-only kernel is the aggregator's; float32 attention (the heads) takes "auto"
@@ -140,21 +151,23 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
             implementation = "auto"
     check_kernel(implementation)
     _check_operands(q, k, v, key_bias)
-    scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
-    bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
-    block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
+    return implementation
+
+
+def _dispatch(implementation: str, q: jax.Array, run):
+    """`run(name)()` for the kernel `implementation` names; for "auto", the kernel of each
+    platform this installation can compile for (`kernel_for`), chosen when the program is
+    lowered (`jax.lax.platform_dependent`)."""
     if implementation != "auto":
-        return _run(check_kernel(implementation, q.dtype), q, k, v, bias32, scale, block_bytes)
+        return run(check_kernel(implementation, q.dtype))()
     branches = {}
     for platform in compilable_platforms():
         name = kernel_for(platform, q.dtype, q.shape[-1])
         if name != "blocked":
-            branches[platform] = functools.partial(_run, name, q, k, v, bias32, scale, block_bytes)
+            branches[platform] = run(name)
     if not branches:
-        return _run("blocked", q, k, v, bias32, scale, block_bytes)
-    return jax.lax.platform_dependent(
-        cpu=functools.partial(_run, "blocked", q, k, v, bias32, scale, block_bytes),
-        default=functools.partial(_run, "blocked", q, k, v, bias32, scale, block_bytes), **branches)
+        return run("blocked")()
+    return jax.lax.platform_dependent(cpu=run("blocked"), default=run("blocked"), **branches)
 
 
 def attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
@@ -167,29 +180,12 @@ def attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.A
     (`kernels/fused.py`: JAX's cuDNN rules under a VJP that takes the log-sum-exp's
     cotangent); the Pallas TPU kernel's (`kernels/tpu_flash.py`, the same for its
     backward kernels). Differentiable in both outputs."""
-    if implementation is None:
-        implementation = current_kernel()
-        if implementation in HALF_ONLY and not _is_half(q.dtype):
-            implementation = "auto"
-    check_kernel(implementation)
-    _check_operands(q, k, v, key_bias)
+    implementation = _requested(implementation, q, k, v, key_bias)
     block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
     bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
     out_dtype = q.dtype if out_dtype is None else out_dtype
-
-    def run(name):
-        return functools.partial(_run_with_lse, name, q, k, v, bias32, float(scale), block_bytes, out_dtype)
-
-    if implementation != "auto":
-        return run(check_kernel(implementation, q.dtype))()
-    branches = {}
-    for platform in compilable_platforms():
-        name = kernel_for(platform, q.dtype, q.shape[-1])
-        if name != "blocked":
-            branches[platform] = run(name)
-    if not branches:
-        return run("blocked")()
-    return jax.lax.platform_dependent(cpu=run("blocked"), default=run("blocked"), **branches)
+    return _dispatch(implementation, q, lambda name: functools.partial(_run_with_lse, name, q, k, v, bias32,
+                                                                       float(scale), block_bytes, out_dtype))
 
 
 def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, out_dtype):

@@ -177,7 +177,8 @@ def _with_lse_bwd(scale, dv, implementation, res, cotangents):
     """The kernel's backward forms the logits' cotangent p_ij (dout_i . v_j - di_i) with
     di_i = out_i . dout_i from the output it is given. An lse cotangent g adds p_ij g_i
     (d lse_i / d s_ij = p_ij). v's column `dv` is zero, so a value there in dout changes
-    no dout_i . v_j; with g there in dout and -1 there in out, di_i becomes di_i - g_i."""
+    no dout_i . v_j; with g there in dout and -1 there in out, di_i becomes di_i - g_i.
+    (With 16-bit operands g is held in dout's dtype, as dout itself is.)"""
     q, k, v, out, stats = res
     dout, dlse = cotangents
     dout = dout.at[..., dv].set(dlse.astype(dout.dtype))

@@ -30,8 +30,17 @@ def tpu_flash_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.
     None -> [B, Nq, H, Dv] in q's dtype; `neg_bias` is the bias that removes a key."""
     from jax.experimental.pallas.ops.tpu import flash_attention as pallas_flash
 
+    qf, kf, vf = _operands(q, k, v, key_bias, scale, neg_bias)
+    out = pallas_flash.flash_attention(qf, kf, vf, sm_scale=scale)
+    return out.transpose(0, 2, 1, 3)[:, :q.shape[1], :, :v.shape[-1]].astype(q.dtype)
+
+
+def _operands(q, k, v, key_bias, scale, neg_bias):
+    """The kernel's operands [B, H, N, Dp]: rows padded to BLOCK (padded keys removed by
+    `neg_bias` in the bias), the bias folded in (`fold_key_bias`), the head dimension
+    padded to HEAD_MULTIPLE."""
     b, nq, h, _ = q.shape
-    nk, dv = k.shape[1], v.shape[-1]
+    nk = k.shape[1]
     pq, pk = BLOCK * math.ceil(nq / BLOCK) - nq, BLOCK * math.ceil(nk / BLOCK) - nk
     bias = jnp.zeros((b, nk), jnp.float32) if key_bias is None else key_bias.astype(jnp.float32)
     bias = jnp.pad(bias, ((0, 0), (0, pk)), constant_values=neg_bias)
@@ -43,8 +52,7 @@ def tpu_flash_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.
     if qf.shape[-1] > MAX_HEAD_DIM:
         raise ValueError(f"the TPU flash kernel takes head dims up to {MAX_HEAD_DIM} (with the bias columns); "
                          f"got {qf.shape[-1]}")
-    out = pallas_flash.flash_attention(*(x.transpose(0, 2, 1, 3) for x in (qf, kf, vf)), sm_scale=scale)
-    return out.transpose(0, 2, 1, 3)[:, :nq, :, :dv].astype(q.dtype)
+    return tuple(x.transpose(0, 2, 1, 3) for x in (qf, kf, vf))
 
 
 def tpu_flash_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
@@ -52,21 +60,9 @@ def tpu_flash_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_b
     """`tpu_flash_attention` and the log-sum-exp of every query's logits: (out
     [B, Nq, H, Dv] in q's dtype, lse [B, Nq, H] float32), what ring attention folds
     partial results with. Differentiable in both outputs (`_flash_with_lse`)."""
-    b, nq, h, _ = q.shape
-    nk, dv = k.shape[1], v.shape[-1]
-    pq, pk = BLOCK * math.ceil(nq / BLOCK) - nq, BLOCK * math.ceil(nk / BLOCK) - nk
-    bias = jnp.zeros((b, nk), jnp.float32) if key_bias is None else key_bias.astype(jnp.float32)
-    bias = jnp.pad(bias, ((0, 0), (0, pk)), constant_values=neg_bias)
-
-    def pad_rows(x, n):
-        return jnp.pad(x, ((0, 0), (0, n), (0, 0), (0, 0)))
-
-    qf, kf, vf = fold_key_bias(pad_rows(q, pq), pad_rows(k, pk), pad_rows(v, pk), bias, scale, HEAD_MULTIPLE)
-    if qf.shape[-1] > MAX_HEAD_DIM:
-        raise ValueError(f"the TPU flash kernel takes head dims up to {MAX_HEAD_DIM} (with the bias columns); "
-                         f"got {qf.shape[-1]}")
-    out, lse = _flash_with_lse(*(x.transpose(0, 2, 1, 3) for x in (qf, kf, vf)), scale)
-    return out.transpose(0, 2, 1, 3)[:, :nq, :, :dv].astype(q.dtype), lse.transpose(0, 2, 1)[:, :nq]
+    nq = q.shape[1]
+    out, lse = _flash_with_lse(*_operands(q, k, v, key_bias, scale, neg_bias), scale)
+    return out.transpose(0, 2, 1, 3)[:, :nq, :, :v.shape[-1]].astype(q.dtype), lse.transpose(0, 2, 1)[:, :nq]
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
