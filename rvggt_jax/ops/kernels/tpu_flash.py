@@ -39,7 +39,7 @@ def _operands(q, k, v, key_bias, scale, neg_bias):
     """The kernel's operands [B, H, N, Dp]: rows padded to BLOCK (padded keys removed by
     `neg_bias` in the bias), the bias folded in (`fold_key_bias`), the head dimension
     padded to HEAD_MULTIPLE."""
-    b, nq, h, _ = q.shape
+    b, nq = q.shape[:2]
     nk = k.shape[1]
     pq, pk = BLOCK * math.ceil(nq / BLOCK) - nq, BLOCK * math.ceil(nk / BLOCK) - nk
     bias = jnp.zeros((b, nk), jnp.float32) if key_bias is None else key_bias.astype(jnp.float32)
