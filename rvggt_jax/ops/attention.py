@@ -48,6 +48,7 @@ import contextvars
 import functools
 import importlib.util
 import math
+import warnings
 from typing import Any, Iterator
 
 import jax
@@ -57,8 +58,10 @@ import numpy as np
 from rvggt_jax.ops.bits import on_cpu
 from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
-from rvggt_jax.ops.kernels.fused import CUDNN_MAX_HEAD_DIM, fused_attention, fused_attention_with_lse
+from rvggt_jax.ops.kernels.fused import (CUDNN_MAX_HEAD_DIM, cudnn_lse_available, fused_attention,
+                                         fused_attention_with_lse)
 from rvggt_jax.ops.kernels.names import HALF_ONLY, KERNELS
+from rvggt_jax.ops.kernels.tpu_flash import lse_available as tpu_lse_available
 from rvggt_jax.ops.kernels.tpu_flash import tpu_flash_attention, tpu_flash_attention_with_lse
 
 IMPLEMENTATIONS = KERNELS
@@ -189,7 +192,14 @@ def attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.A
 
 
 def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, out_dtype):
-    """Kernel `name`'s (attention in `out_dtype`, lse) on checked operands."""
+    """Kernel `name`'s (attention in `out_dtype`, lse) on checked operands. The
+    accelerator kernels' log-sum-exp forms call JAX-private functions: on a JAX without
+    them, the blocked kernel (memory bounded, slower), with a warning."""
+    if name != "blocked" and not _lse_available(name):
+        warnings.warn(f"this JAX ({jax.__version__}) lacks the private functions of the {name!r} kernel's "
+                      "log-sum-exp form (written against JAX 0.10): ring attention takes the blocked kernel",
+                      RuntimeWarning, stacklevel=3)
+        name = "blocked"
     if name == "blocked":
         def blocked_run(bits):
             out, lse = blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=bits)
@@ -201,6 +211,11 @@ def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, ou
     else:
         out, lse = fused_attention_with_lse(q, k, v, bias32, scale, name, NEG_BIAS)
     return out.astype(out_dtype), lse
+
+
+@functools.cache
+def _lse_available(name: str) -> bool:
+    return tpu_lse_available() if name == "tpu_flash" else name == "xla" or cudnn_lse_available()
 
 
 def _run(name: str, q, k, v, bias32, scale: float, block_bytes: int) -> jax.Array:

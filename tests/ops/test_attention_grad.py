@@ -238,3 +238,19 @@ def test_the_ring_on_accelerators_takes_their_kernels_for_every_share():
     assert gpu.count("__cudnn$fmhaSoftmax") - gpu.count("__cudnn$fmhaSoftmaxBackward") >= 3
     tpu = _ring_grad_text("tpu-v6e", jnp.float32)
     assert tpu.count("tpu_custom_call") >= 9  # forward, dK/dV and dQ per share
+
+
+def test_a_jax_without_the_private_kernels_takes_the_blocked_one(monkeypatch):
+    # the log-sum-exp forms call JAX-private functions; where they are missing the ring
+    # says so and runs the blocked kernel (same values)
+    monkeypatch.setattr(attn, "_lse_available", lambda name: False)
+    q, k, v, bias, _ = _operands(seed=7)
+    with pytest.warns(RuntimeWarning, match="blocked kernel"):
+        out, lse = attn.attention_with_lse(q, k, v, bias, 0.3, implementation="xla")
+    ref, ref_lse = attn.attention_with_lse(q, k, v, bias, 0.3, implementation="blocked")
+    np.testing.assert_array_equal(np.asarray(out), np.asarray(ref))
+    np.testing.assert_array_equal(np.asarray(lse), np.asarray(ref_lse))
+    # this JAX (the one the project pins) has them
+    from rvggt_jax.ops.kernels import fused, tpu_flash
+
+    assert fused.cudnn_lse_available() and tpu_flash.lse_available()

@@ -190,6 +190,17 @@ def _with_lse_bwd(scale, dv, implementation, res, cotangents):
 _with_lse.defvjp(_with_lse_fwd, _with_lse_bwd)
 
 
+def cudnn_lse_available() -> bool:
+    """Whether this JAX has the cuDNN rules `fused_attention_with_lse` calls (private to
+    JAX; written against 0.10)."""
+    try:
+        cudnn = _cudnn_rules()
+    except ImportError:
+        return False
+    return all(hasattr(cudnn, n) for n in ("_dot_product_attention_fwd_rule", "_dot_product_attention_bwd_rule",
+                                           "MaskType", "AttentionLayout", "check_cudnn_version"))
+
+
 def _cudnn_rules():
     from jax._src.cudnn import fused_attention_stablehlo as cudnn  # noqa: PLC0415 - CUDA installs only
 

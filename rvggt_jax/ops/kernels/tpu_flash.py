@@ -65,6 +65,17 @@ def tpu_flash_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_b
     return out.transpose(0, 2, 1, 3)[:, :nq, :, :v.shape[-1]].astype(q.dtype), lse.transpose(0, 2, 1)[:, :nq]
 
 
+def lse_available() -> bool:
+    """Whether this JAX has the Pallas kernel's functions `_flash_with_lse` calls (private
+    to JAX; written against 0.10)."""
+    try:
+        from jax.experimental.pallas.ops.tpu import flash_attention as pallas_flash
+    except ImportError:
+        return False
+    return all(hasattr(pallas_flash, n) for n in ("_flash_attention_impl", "_flash_attention_bwd_dkv",
+                                                  "_flash_attention_bwd_dq", "BlockSizes"))
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
 def _flash_with_lse(q, k, v, scale):
     """The Pallas kernel on [B, H, N, D] operands with its softmax statistics: (out,
