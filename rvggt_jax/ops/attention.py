@@ -201,12 +201,8 @@ def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, ou
                       RuntimeWarning, stacklevel=3)
         name = "blocked"
     if name == "blocked":
-        def blocked_run(bits):
-            out, lse = blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=bits)
-            return out.astype(out_dtype), lse
-
-        return on_cpu(lambda: blocked_run(True), lambda: blocked_run(False))
-    if name == "tpu_flash":
+        out, lse = _blocked(q, k, v, bias32, scale, block_bytes, out_dtype)
+    elif name == "tpu_flash":
         out, lse = tpu_flash_attention_with_lse(q, k, v, bias32, scale, NEG_BIAS)
     else:
         out, lse = fused_attention_with_lse(q, k, v, bias32, scale, name, NEG_BIAS)
@@ -221,11 +217,17 @@ def _lse_available(name: str) -> bool:
 def _run(name: str, q, k, v, bias32, scale: float, block_bytes: int) -> jax.Array:
     """Kernel `name` on checked operands (see `attention`)."""
     if name == "blocked":
-        return on_cpu(lambda: blocked_attention(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype),
-                      lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, bits=False)[0].astype(q.dtype))
+        return _blocked(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype)
     if name == "tpu_flash":
         return tpu_flash_attention(q, k, v, bias32, scale, NEG_BIAS)
     return fused_attention(q, k, v, bias32, scale, name, NEG_BIAS)
+
+
+def _blocked(q, k, v, bias32, scale: float, block_bytes: int, out_dtype: Any = None):
+    """The blocked kernel's (out, lse), its 16-bit operands held as bits only in a program
+    compiled for a CPU (XLA:CPU's workaround; `blocked_attention`)."""
+    return on_cpu(lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype),
+                  lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=False))
 
 
 def _is_half(dtype: Any) -> bool:

@@ -164,8 +164,7 @@ def fused_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias:
 def _with_lse(q, k, v, scale, dv, implementation):
     """[B, N, H, Dp] operands (v's column `dv` zero) -> (out [B, Nq, H, Dp], lse
     [B, Nq, H] float32)."""
-    out, stats = _LSE_KERNELS[implementation][0](q, k, v, scale)
-    return out, stats.transpose(0, 2, 1)
+    return _with_lse_fwd(q, k, v, scale, dv, implementation)[0]
 
 
 def _with_lse_fwd(q, k, v, scale, dv, implementation):
