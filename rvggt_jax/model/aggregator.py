@@ -10,7 +10,7 @@ returned as `KeptLayer`s (`kept.py`).
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import chex
 import jax
@@ -21,7 +21,8 @@ from rvggt_jax import compression
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model import layers, remat
 from rvggt_jax.model.global_block import dense_global_block
-from rvggt_jax.model.kept import KeptLayer, kept_buffer, kept_slots, stored, write_slot
+from rvggt_jax.model.kept import (KeptLayer, ProjectedLayer, Projection, kept_buffer, kept_slots, project_layer,
+                                  stored, write_slot)
 from rvggt_jax.model.params import Params
 from rvggt_jax.model.patch_embed import patch_embed_tokens
 from rvggt_jax.ops.ordering import with_dependency
@@ -39,10 +40,12 @@ def special_tokens(token: jax.Array, b: int, frame_ids: jax.Array) -> jax.Array:
 
 def aggregator_forward(
     p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int],
-    shards: FrameShards | None = None,
-) -> tuple[dict[int, KeptLayer], jax.Array, jax.Array]:
+    shards: FrameShards | None = None, project: Mapping[int, Projection] | None = None,
+) -> tuple[dict[int, KeptLayer | ProjectedLayer], jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] ->
     (outputs {layer: `KeptLayer` (tokens [B, S, P, 2C])} for the layers in `keep_layers`,
+     and {layer: `ProjectedLayer`} for the layers in `project` (its `raw` the
+     `KeptLayer` when the layer is in `keep_layers` too),
      patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w]).
 
     Each output concatenates the frame-block and global-block outputs of that layer; the
@@ -54,6 +57,12 @@ def aggregator_forward(
     global half is the final residual stream (its `KeptLayer` reads x), so the global
     buffer has one slot less and the layers after the last-but-one kept layer, a scan of
     their own, write no global half.
+
+    A layer in `project` (`kept.Projection`: its readers' first step, e.g. the DPT heads'
+    norm and projection) ends its scan; the projection then reads its frame half from
+    the slot it was written to and its global half from the stream, before the next layer
+    overwrites either (`kept.project_layer`). Unless it is in `keep_layers` too, it
+    takes no slot of its own.
 
     With `shards` (frames split over devices, inside `jax.shard_map`): S is this device's
     frames, every output holds them; the global blocks attend across all devices."""
@@ -83,18 +92,55 @@ def aggregator_forward(
     last_is_x = bool(keep) and keep[-1] == config.depth - 1
     writes_global = (keep[-2] if len(keep) > 1 else -1) if last_is_x else config.depth - 1  # up to this layer
     n_global = shape[0] - int(last_is_x)
+    if not keep:  # (every layer read is projected: no halves to keep)
+        writes_global, n_global = -1, 0
     kept_global = kept_buffer((n_global,) + shape[1:], dtype, jax.tree.leaves(kept_frame)[0]) if n_global else None
+    project = dict(project or {})
     groups = [g for run in layer_groups(config, geom)
               for g in (tuple(i for i in run if i <= writes_global), tuple(i for i in run if i > writes_global)) if g]
+    groups = [g for run in groups for g in _split_after(run, project)]
     carry = (x, kept_frame, kept_global)
+    projected = {}
     for group in groups:
         carry, state = _scan_layers(p, carry, group, slot, pos, geom, config, shards, state,
                                     store=group[0] <= writes_global)
+        if group[-1] in project:
+            # the layer as its slot and the stream hold it now: the next layer overwrites both
+            x, kept_frame, kept_global = carry
+            layer = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), int(slot[group[-1]]), 0, dtype)
+            projected[group[-1]] = project_layer(layer, project[group[-1]], dtype)
+            # the next scan starts after the projection read both (a dependency through
+            # one weight: a dependency of the stream, x + 0, gets a buffer of its own)
+            p = _after(p, stored(projected[group[-1]]))
     x, kept_frame, kept_global = carry
     out = {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
     if last_is_x:
         out[keep[-1]] = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), len(keep) - 1, 0, dtype)
+    for i, buf in projected.items():
+        out[i] = ProjectedLayer(buf, project[i].columns, (b, s), out.get(i))
     return out, patch_tokens, saliency
+
+
+def _split_after(run: tuple[int, ...], project) -> list[tuple[int, ...]]:
+    """A run of layers cut after each layer in `project`: its projection runs between
+    two scans."""
+    parts, part = [], []
+    for i in run:
+        part.append(i)
+        if i in project:
+            parts.append(tuple(part))
+            part = []
+    return parts + ([tuple(part)] if part else [])
+
+
+def _after(p: Params, dep: jax.Array) -> Params:
+    """The aggregator's weights with the frame blocks' smallest weight computed from
+    `dep` (the next scan, which takes it, starts after `dep` exists)."""
+    frame = p["frame_blocks"]
+    leaves, tree = jax.tree.flatten(frame)
+    small = min(range(len(leaves)), key=lambda k: leaves[k].size)
+    leaves[small] = with_dependency(leaves[small], dep)
+    return {**p, "frame_blocks": jax.tree.unflatten(tree, leaves)}
 
 
 def input_tokens(p: Params, images: jax.Array, config: VGGTConfig, shards: FrameShards

@@ -24,6 +24,7 @@ from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.model.heads.camera import camera_head
 from rvggt_jax.model.patch_embed import unit_images
 from rvggt_jax.model.heads.dpt import dense_heads
+from rvggt_jax.model.heads.projections import head_projections
 from rvggt_jax.model.heads.track import track_head
 from rvggt_jax.model.input_range import InputRangeWarning, warn_if_out_of_range  # noqa: F401 (re-exported)
 from rvggt_jax.model import remat
@@ -216,17 +217,42 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
         return _forward_frames(params, images, config, query_points, shards)
 
 
+def _head_projections(params: Params, config: VGGTConfig, grid, with_track: bool, enabled: dict,
+                      per_group=None) -> dict:
+    """The kept layers held as the DPT heads' first step (`dpt.head_projections`): the
+    layers only DPT heads read, where their projections are narrower than the tokens
+    (VGGT-1B: layers 4 and 11, 512 and 1024 of 2048 channels for the depth and point
+    heads). None in a training step with remat: there each split of the aggregator's
+    scans costs residuals (a micro train step's temporaries grew a third: 5.2 -> 6.9 MB
+    at 8 frames, more than the plain step's 6.8), and the heads' recomputed groups re-read
+    the kept layers anyway; a layer's size matters at inference lengths."""
+    if config.remat != "none":
+        return {}
+    readers = {name: (params[name], config.dpt_head.intermediate_layer_idx) for name, on in enabled.items() if on}
+    if with_track:
+        readers["track_head"] = (params["track_head"]["feature_extractor"], config.track_layer_idx)
+    # (a returned layer is projected too, and also kept whole: the heads' values do not
+    # depend on which layers are returned)
+    raw = {config.depth - 1} if config.enable_camera else set()
+    return head_projections(readers, grid, 2 * config.embed_dim, raw, per_group)
+
+
 def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None,
                     shards: FrameShards | None) -> dict[str, Any]:
     b, s, _, hh, ww = images.shape
     shards = FrameShards.single(s) if shards is None else shards
     with_track = query_points is not None
-    keep = set(config.needed_layers(with_track)) | set(config.return_layers)
-    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards)
     # The heads compute in float32 whatever dtype their weights are stored in (a tree cast
     # whole to bf16, the usual JAX idiom, would otherwise change the camera head's scan
     # carry dtype); as `cast_params` lays them out, this is a no-op.
     params = {name: (sub if name == "aggregator" else heads_in_float32(sub)) for name, sub in params.items()}
+    grid = config.token_grid((hh, ww))
+    enabled = {"depth_head": config.enable_depth, "point_head": config.enable_point}
+    # a training step re-reads each frame group's tokens and recomputes its feature maps (config.remat)
+    per_group = functools.partial(remat.checkpoint, config=config, part="head")
+    project = _head_projections(params, config, grid, with_track, enabled, per_group)
+    keep = (set(config.needed_layers(with_track)) - set(project)) | set(config.return_layers)
+    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards, project)
 
     out: dict[str, Any] = {}
     if config.enable_camera:
@@ -236,10 +262,6 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
         pose_enc_list = [shards.local_part(pe, 1) for pe in camera_head(params["camera_head"], cam, config.camera_head)]
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
-    grid = config.token_grid((hh, ww))
-    enabled = {"depth_head": config.enable_depth, "point_head": config.enable_point}
-    # a training step re-reads each frame group's tokens and recomputes its feature maps (config.remat)
-    per_group = functools.partial(remat.checkpoint, config=config, part="head")
     out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid,
                            per_group))
     if with_track:

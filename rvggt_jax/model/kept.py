@@ -2,9 +2,16 @@
 them while the aggregator runs: every layer writes its frame and global halves to a slot
 (`kept_slots`), so the layer loop's body is the same unconditional in-place write for
 every layer.
+
+A layer whose readers take less than its width (each DPT head first normalises a layer's
+patch tokens and projects them to 256-1024 of VGGT-1B's 2048 channels) is kept as what
+they make of it: `project_layer` runs their first step as soon as the layer exists and
+`ProjectedLayer` holds the result, so the layer itself never outlives the next one.
 """
 
 from __future__ import annotations
+
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,27 +54,30 @@ class KeptLayer:
     def ndim(self) -> int:
         return 4
 
-    def _read(self, op, *index) -> jax.Array:
-        """op(buffer, slot, *index) on both halves, concatenated along channels, float32."""
-        halves = [read_buffer(self.frame_buf, lambda b, *i: op(b, self.slot, *i), *index),
-                  read_buffer(self.global_buf, lambda b, *i: op(b, self.global_slot, *i), *index)]
+    def _halves(self, op, *index) -> list[jax.Array]:
+        """op(buffer, slot, *index) on both halves, as stored (the compute dtype; the
+        stream's half float32)."""
+        return [read_buffer(self.frame_buf, lambda b, *i: op(b, self.slot, *i), *index),
+                read_buffer(self.global_buf, lambda b, *i: op(b, self.global_slot, *i), *index)]
+
+    def joined(self, halves: list[jax.Array]) -> jax.Array:
+        """The two halves (`_halves`) concatenated along channels, float32."""
         if self.dtype is not None:  # (the residual stream, as its slot would hold it)
             halves = [halves[0].astype(jnp.float32), rounded(halves[1], self.dtype)]
         # (the barrier keeps the float32 cast on the slices)
         return jnp.concatenate(jax.lax.optimization_barrier(halves), axis=-1).astype(jnp.float32)
 
+    def _read(self, op, *index) -> jax.Array:
+        """op(buffer, slot, *index) on both halves, concatenated along channels, float32."""
+        return self.joined(self._halves(op, *index))
+
     def frames(self, start: jax.Array | int, count: int) -> jax.Array:
         """Frames [start, start + count) of the flattened B*S frames: [count, P, 2C] float32."""
-        def part(buf, slot, start):
-            # (buf: float32, or a 16-bit buffer's bits; plain slices, which also carry
-            # the derivatives of `bits.Bits16`)
-            flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])  # [K, B*S, P, C]
-            # Frames first, then the slot, both dynamic slices (a static slot slice is
-            # loop-invariant: XLA would hoist it, cast to float32, out of the heads' loop)
-            frames = jax.lax.dynamic_slice_in_dim(flat, start, count, 1)
-            return jax.lax.dynamic_index_in_dim(frames, slot, 0, keepdims=False)
+        return self._read(_frames_of_slot(count), start)
 
-        return self._read(part, start)
+    def frame_halves(self, start: jax.Array | int, count: int) -> list[jax.Array]:
+        """`frames` before `joined`: the two halves [count, P, C] as stored."""
+        return self._halves(_frames_of_slot(count), start)
 
     def token(self, index: int) -> jax.Array:
         """One token of every frame: [B, S, 2C] float32 (index 0: the camera token).
@@ -88,6 +98,125 @@ class KeptLayer:
     @classmethod
     def tree_unflatten(cls, aux, children):
         return cls(*children, *aux)
+
+
+class Projection(NamedTuple):
+    """What a layer's readers make of it first: `fn(tokens [N, P, 2C] float32) ->
+    [N, Q, F]` (Q: the patch tokens, F: every reader's columns side by side) and
+    `columns` ((reader, first column, width), ...): reader's part of F. `remat`: how a
+    group of frames runs in a training step (as the heads' groups:
+    `dpt.map_frame_groups`), or None."""
+
+    fn: Callable[[jax.Array], jax.Array]
+    columns: tuple[tuple[str, int, int], ...]
+    remat: Callable | None = None
+
+    @property
+    def width(self) -> int:
+        return sum(w for _, _, w in self.columns)
+
+
+# Bytes of the float32 tokens [G, P, 2C] `project_layer` reads per group of frames.
+PROJECT_GROUP_BYTES = 64 * 2**20
+
+
+@jax.tree_util.register_pytree_node_class
+class ProjectedLayer:
+    """A kept layer as its readers' first step made it (`project_layer`): `buf`
+    [B*S, Q, F] in the compute dtype (16-bit ones as `Bits16`), `columns` as in
+    `Projection`, `batch` = (B, S). `raw` is the layer itself when something else reads it
+    too (returned layers), else None."""
+
+    def __init__(self, buf, columns: tuple, batch: tuple[int, int], raw: "KeptLayer | None" = None):
+        self.buf, self.columns, self.batch, self.raw = buf, columns, batch, raw
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.batch + tuple(self.buf.shape[1:])
+
+    @property
+    def ndim(self) -> int:
+        return 4
+
+    def part(self, reader: str) -> tuple[int, int]:
+        """(first column, width) of `reader`'s projection."""
+        for name, start, width in self.columns:
+            if name == reader:
+                return start, width
+        raise KeyError(f"this layer was projected for {[c[0] for c in self.columns]}, not for {reader!r}")
+
+    def frames(self, start: jax.Array | int, count: int) -> jax.Array:
+        """Frames [start, start + count) of the flattened B*S frames: [count, Q, F] float32."""
+        return read_buffer(self.buf, lambda b, s: jax.lax.dynamic_slice_in_dim(b, s, count, 0), start
+                           ).astype(jnp.float32)
+
+    def token(self, index: int) -> jax.Array:
+        return self._raw().token(index)
+
+    def array(self) -> jax.Array:
+        return self._raw().array()
+
+    def _raw(self) -> "KeptLayer":
+        if self.raw is None:
+            raise ValueError("this layer was kept only as its heads' projections; ask for it with "
+                             "config.with_outputs(layers=...) to keep its tokens")
+        return self.raw
+
+    def tree_flatten(self):
+        return (self.buf, self.raw), (self.columns, self.batch)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(children[0], aux[0], aux[1], children[1])
+
+
+def project_layer(layer: KeptLayer, projection: Projection, dtype) -> jax.Array:
+    """The readers' first step on every frame of `layer` [B, S, P, 2C] -> [B*S, Q, F] in
+    `dtype` (16-bit: a `Bits16` buffer), computed for groups of frames whose float32
+    tokens take PROJECT_GROUP_BYTES (the layer's float32 copy never exists). When the
+    group does not divide B*S, the last group starts before the end and recomputes a few
+    frames (the first step is per frame: the same values)."""
+    b, s, p, c2 = layer.shape
+    n = b * s
+    g = int(min(n, max(1, PROJECT_GROUP_BYTES // (p * c2 * 4))))
+    groups = -(-n // g)
+    spec = jax.eval_shape(projection.fn, jax.ShapeDtypeStruct((g, p, c2), jnp.float32))
+    if spec.shape[0] != g or spec.shape[-1] != projection.width:
+        raise ValueError(f"a projection of {g} frames gave {spec.shape}; expected [{g}, Q, {projection.width}]")
+    buf = kept_buffer((n,) + spec.shape[1:], dtype, layer.frames(0, 1))
+
+    def group(halves):
+        return projection.fn(layer.joined(halves))
+
+    if projection.remat is not None:
+        # (a checkpoint keeps the group's halves as stored, a copy of the layer in all: the
+        # buffers it reads are overwritten by the next layers, so keeping them would keep
+        # a copy of each whole buffer)
+        group = projection.remat(group)
+
+    def body(i, buf):
+        start = jnp.minimum(i * g, n - g)
+        y = group(layer.frame_halves(start, g))
+        if isinstance(buf, Bits16):
+            return buf.update_rows(y, start)
+        return jax.lax.dynamic_update_slice_in_dim(buf, y.astype(dtype), start, 0)
+
+    return jax.lax.fori_loop(0, groups, body, buf)
+
+
+def _frames_of_slot(count: int):
+    """op(buf [K, B, S, P, C], slot, start) -> frames [start, start + count) of the
+    flattened B*S frames of slot `slot`, [count, P, C]."""
+    def part(buf, slot, start):
+        # (buf: float32, or a 16-bit buffer's bits; plain slices, which also carry
+        # the derivatives of `bits.Bits16`)
+        flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])  # [K, B*S, P, C]
+        # Frames first, then the slot, both dynamic slices (a static slot slice is
+        # loop-invariant: XLA would hoist it, cast to float32, out of the heads' loop)
+        frames = jax.lax.dynamic_slice_in_dim(flat, start, count, 1)
+        return jax.lax.dynamic_index_in_dim(frames, slot, 0, keepdims=False)
+
+    return part
 
 
 def rounded(x: jax.Array, dtype) -> jax.Array:

@@ -99,7 +99,11 @@ class Bits16:
 
     def update_index(self, x: jax.Array, index) -> "Bits16":
         """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
-        return Bits16(*_store_bits(self.bits, self.shadow, x.astype(self.dtype), index))
+        return Bits16(*_store_bits(_update_index, self.bits, self.shadow, x.astype(self.dtype), index))
+
+    def update_rows(self, x: jax.Array, start) -> "Bits16":
+        """`lax.dynamic_update_slice_in_dim(buffer, x, start, 0)` (x cast to the dtype)."""
+        return Bits16(*_store_bits(_update_rows, self.bits, self.shadow, x.astype(self.dtype), start))
 
     def read(self, op, *index) -> jax.Array:
         """op(buffer, *index) (slicing ops only) in the float dtype."""
@@ -119,18 +123,26 @@ def read_buffer(buf: "jax.Array | Bits16", op, *index) -> jax.Array:
     return buf.read(op, *index) if isinstance(buf, Bits16) else op(buf, *index)
 
 
-@jax.custom_jvp
-def _store_bits(bits, shadow, x, index):
-    return jax.lax.dynamic_update_index_in_dim(bits, jax.lax.bitcast_convert_type(x, jnp.uint16), index, 0), shadow
+def _update_index(buf, x, index):
+    return jax.lax.dynamic_update_index_in_dim(buf, x, index, 0)
+
+
+def _update_rows(buf, x, start):
+    return jax.lax.dynamic_update_slice_in_dim(buf, x, start, 0)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _store_bits(update, bits, shadow, x, index):
+    return update(bits, jax.lax.bitcast_convert_type(x, jnp.uint16), index), shadow
 
 
 @_store_bits.defjvp
-def _store_bits_jvp(primals, tangents):
+def _store_bits_jvp(update, primals, tangents):
     bits, shadow, x, index = primals
     _, shadow_dot, x_dot, _ = tangents
-    out = _store_bits(bits, shadow, x, index)
+    out = _store_bits(update, bits, shadow, x, index)
     no_tangent = np.zeros(bits.shape, dtype=jax.dtypes.float0)
-    return out, (no_tangent, jax.lax.dynamic_update_index_in_dim(shadow_dot, x_dot.astype(shadow.dtype), index, 0))
+    return out, (no_tangent, update(shadow_dot, x_dot.astype(shadow.dtype), index))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))

@@ -23,12 +23,13 @@ from rvggt_jax.model import layers
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
-from rvggt_jax.model.kept import KeptLayer
+from rvggt_jax.model.kept import KeptLayer, ProjectedLayer
 from rvggt_jax.model.params import Params
 
 # A list of every aggregator layer's tokens, or a dict {layer index: tokens} holding at
 # least the layers the head reads; each entry is a `KeptLayer` [B, S, P, 2E], which the
-# head slices per group of frames (a plain array is taken as `KeptLayer.of(array)`).
+# head slices per group of frames (a plain array is taken as `KeptLayer.of(array)`), or
+# a `ProjectedLayer` holding the head's first step on it (`projections.head_projections`).
 Aggregated = Sequence[KeptLayer | jax.Array] | Mapping[int, KeptLayer | jax.Array]
 
 POS_EMBED_RATIO = 0.1
@@ -198,15 +199,27 @@ def _token_map(params: Params, tokens: jax.Array, patch_start_idx: int, grid_hw:
     return layers.layer_norm(params["norm"], x)
 
 
+def level_map(params: Params, level: int, tokens: jax.Array, patch_start_idx: int, grid_hw: tuple[int, int]
+              ) -> jax.Array:
+    """The head's first step on one of its 4 layers: tokens [N, P, C] -> the normalised
+    patch tokens projected to level `level`'s width, [N, h, w, out_channels[level]]."""
+    return conv2d(params["projects"][str(level)], _token_map(params, tokens, patch_start_idx, grid_hw))
+
+
 def _fused_features(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
-                    patch_size: int, pos_embed: bool, down_ratio: int) -> jax.Array:
+                    patch_size: int, pos_embed: bool, down_ratio: int,
+                    columns: Sequence[tuple[int, int] | None] = (None,) * 4) -> jax.Array:
     """Shared trunk of both modes on frames: 4 token sets [N, P, C] ->
     [N, h*p/down, w*p/down, F] after the final upsampling (and positional embedding when
-    `pos_embed`)."""
+    `pos_embed`). A layer with `columns` (first, width) is already projected
+    ([N, h*w, F'], a `ProjectedLayer`'s frames): the head's level map is those columns."""
     grid_hw = (image_hw[0] // patch_size, image_hw[1] // patch_size)
     feats = []
-    for i, t in enumerate(tokens):
-        x = conv2d(params["projects"][str(i)], _token_map(params, t, patch_start_idx, grid_hw))
+    for i, (t, col) in enumerate(zip(tokens, columns)):
+        if col is None:
+            x = level_map(params, i, t, patch_start_idx, grid_hw)
+        else:
+            x = t[..., col[0]:col[0] + col[1]].reshape(t.shape[0], *grid_hw, col[1])
         if pos_embed:
             x = add_pos_embed(x, image_hw)
         feats.append(_resize_layer(params, i, x))
@@ -272,27 +285,43 @@ def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int], remat
     return jax.tree.map(lambda o: o.reshape((b, s) + o.shape[1:]), out)
 
 
-def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[KeptLayer]:
+def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[KeptLayer | ProjectedLayer]:
     if len(layer_idx) != 4:
         raise ValueError(f"the DPT head reads exactly 4 layers, got {layer_idx}")
-    return [t if isinstance(t, KeptLayer) else KeptLayer.of(t) for t in (aggregated[i] for i in layer_idx)]
+    return [t if isinstance(t, (KeptLayer, ProjectedLayer)) else KeptLayer.of(t)
+            for t in (aggregated[i] for i in layer_idx)]
+
+
+def _columns(read: Sequence[KeptLayer | ProjectedLayer], reader: str | None
+             ) -> tuple[tuple[int, int] | None, ...]:
+    """`reader`'s columns of each projected layer it reads (None: a layer of tokens)."""
+    if reader is None and any(isinstance(t, ProjectedLayer) for t in read):
+        raise ValueError(f"these layers hold DPT heads' projections: say which head this is (reader=, one of {READERS})")
+    return tuple(t.part(reader) if isinstance(t, ProjectedLayer) else None for t in read)
+
+
+# A DPT head's name for its columns of a `ProjectedLayer`: its parameter subtree's.
+READERS = ("depth_head", "point_head", "track_head")
 
 
 def dpt_features(params: Params, aggregated: Aggregated, grid: TokenGrid, *,
                  layer_idx: Sequence[int] = (4, 11, 17, 23), down_ratio: int = 2, pos_embed: bool = False,
-                 remat: Callable | None = None) -> jax.Array:
+                 remat: Callable | None = None, reader: str | None = None) -> jax.Array:
     """Feature-only DPT (upstream `DPTHead(feature_only=True)`, the track head's extractor).
 
     aggregated: aggregator tokens, each [B, S, P, 2E]; grid: the images' `TokenGrid`.
     Returns [B, S, h*p/down_ratio, w*p/down_ratio, F] with (h, w) = `grid.hw`, p the patch
     size and F the width of `scratch.output_conv1`. The defaults are the track head's
-    (down_ratio 2, no positional embedding). `remat`: see `map_frame_groups`."""
+    (down_ratio 2, no positional embedding). `remat`: see `map_frame_groups`. `reader`:
+    whose columns of a `ProjectedLayer` are this head's (`head_projections`)."""
     image_hw, patch_start_idx, patch_size = grid.image_hw, grid.patch_start_idx, grid.patch_size
+    read = _layers_read(aggregated, layer_idx)
+    columns = _columns(read, reader)
 
     def per_frames(tokens):
-        return _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, down_ratio)
+        return _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, down_ratio, columns)
 
-    return map_frame_groups(per_frames, _layers_read(aggregated, layer_idx), image_hw, remat)
+    return map_frame_groups(per_frames, read, image_hw, remat)
 
 
 # ---------------------------------------------------------------------------------------
@@ -343,12 +372,14 @@ def activate_head(out: jax.Array, activation: str = "norm_exp",
 
 
 def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start_idx: int, patch_size: int,
-                    activation: str, conf_activation: str):
-    """The dense DPT head on one group of frames: tokens [G, P, 2E] x 4 -> (pred, conf)."""
+                    activation: str, conf_activation: str, columns=(None,) * 4):
+    """The dense DPT head on one group of frames: tokens [G, P, 2E] x 4 -> (pred, conf)
+    (`columns`: see `_fused_features`)."""
     conv2 = params["scratch"]["output_conv2"]
 
     def per_frames(tokens):
-        x = _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, down_ratio=1)
+        x = _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, down_ratio=1,
+                            columns=columns)
         x = conv2d(conv2["2"], jax.nn.relu(conv2d(conv2["0"], x)))
         return activate_head(x, activation, conf_activation)
 
@@ -356,19 +387,19 @@ def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start
 
 
 def dpt_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid, *,
-             activation: str = "inv_log", conf_activation: str = "expp1", remat: Callable | None = None
-             ) -> tuple[jax.Array, jax.Array]:
+             activation: str = "inv_log", conf_activation: str = "expp1", remat: Callable | None = None,
+             reader: str | None = None) -> tuple[jax.Array, jax.Array]:
     """Dense DPT prediction (upstream `DPTHead`, not feature-only).
 
     aggregated: aggregator tokens, each [B, S, P, 2E] (list of all layers or dict by layer
     index); grid: the images' `TokenGrid` ((H, W), patch size). Returns (pred [B, S, H', W', C-1],
     conf [B, S, H', W']) with C the output_conv2 width and H' = H // patch_size * patch_size
     (= H for the usual multiples of the patch size), W' likewise. `remat`: see
-    `map_frame_groups`."""
+    `map_frame_groups`. `reader`: whose columns of a `ProjectedLayer` are this head's."""
+    read = _layers_read(aggregated, config.intermediate_layer_idx)
     per_frames = _dpt_per_frames(params, config, grid.image_hw, grid.patch_start_idx, grid.patch_size, activation,
-                                 conf_activation)
-    pred, conf = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw,
-                                  remat)
+                                 conf_activation, _columns(read, reader))
+    pred, conf = map_frame_groups(per_frames, read, grid.image_hw, remat)
     chex.assert_equal_shape_prefix([pred, conf], 4)
     return pred, conf
 
@@ -382,7 +413,7 @@ def depth_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, gr
                ) -> tuple[jax.Array, jax.Array]:
     """VGGT's depth head: (depth [B, S, H, W, 1] = exp, depth_conf [B, S, H, W] = 1 + exp)."""
     return dpt_head(params, aggregated, config, grid, activation=DEPTH_ACTIVATIONS[0],
-                    conf_activation=DEPTH_ACTIVATIONS[1])
+                    conf_activation=DEPTH_ACTIVATIONS[1], reader="depth_head")
 
 
 def point_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid
@@ -390,7 +421,7 @@ def point_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, gr
     """VGGT's point head: (world_points [B, S, H, W, 3] = inv_log, world_points_conf
     [B, S, H, W] = 1 + exp)."""
     return dpt_head(params, aggregated, config, grid, activation=POINT_ACTIVATIONS[0],
-                    conf_activation=POINT_ACTIVATIONS[1])
+                    conf_activation=POINT_ACTIVATIONS[1], reader="point_head")
 
 
 def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid,
@@ -400,18 +431,20 @@ def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DP
     "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
     return them. One loop reads the kept aggregator layers once (two loops would each
     need their own copy of them in XLA's plan). `remat`: see `map_frame_groups`."""
+    if not ({"depth_head", "point_head"} & set(params)):
+        return {}
     heads = {}
     args = (config, grid.image_hw, grid.patch_start_idx, grid.patch_size)
+    read = _layers_read(aggregated, config.intermediate_layer_idx)
     if "depth_head" in params:
-        heads[("depth", "depth_conf")] = _dpt_per_frames(params["depth_head"], *args, *DEPTH_ACTIVATIONS)
+        heads[("depth", "depth_conf")] = _dpt_per_frames(params["depth_head"], *args, *DEPTH_ACTIVATIONS,
+                                                         _columns(read, "depth_head"))
     if "point_head" in params:
         heads[("world_points", "world_points_conf")] = _dpt_per_frames(params["point_head"], *args,
-                                                                       *POINT_ACTIVATIONS)
-    if not heads:
-        return {}
+                                                                       *POINT_ACTIVATIONS, _columns(read, "point_head"))
 
     def per_frames(tokens):
         return {names: fn(tokens) for names, fn in heads.items()}
 
-    res = map_frame_groups(per_frames, _layers_read(aggregated, config.intermediate_layer_idx), grid.image_hw, remat)
+    res = map_frame_groups(per_frames, read, grid.image_hw, remat)
     return {name: value for names, pair in res.items() for name, value in zip(names, pair)}

@@ -30,7 +30,7 @@ def track_features(params: Params, aggregated: Aggregated, config: TrackHeadConf
     if config.intermediate_layer_idx is None:
         raise ValueError("the track head's intermediate_layer_idx is unset: pass VGGTConfig.track_head_config")
     return dpt_features(params["feature_extractor"], aggregated, grid, layer_idx=config.intermediate_layer_idx,
-                        down_ratio=FEATURE_DOWN_RATIO, pos_embed=False, remat=remat)
+                        down_ratio=FEATURE_DOWN_RATIO, pos_embed=False, remat=remat, reader="track_head")
 
 
 def track_head(params: Params, aggregated: Aggregated, config: TrackHeadConfig, grid: TokenGrid,
