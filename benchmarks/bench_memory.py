@@ -132,7 +132,8 @@ def plan_targets(args) -> list[str]:
     for target in args.target:
         print(f"{target}: warm-up compile {warm_up(target):.1f} s (not in any row)", flush=True)
         for s, dtype, preset, rep in _reports(args, target=target, devices=args.devices):
-            fits = {True: "yes", False: "no (XLA:TPU refused it)" if rep.exhausted else "no", None: "?"}[rep.fits]
+            fits = {True: "yes (XLA:TPU compiled it for the chip)" if rep.compiler_checked else "yes",
+                    False: "no (XLA:TPU refused it)" if rep.exhausted else "no", None: "?"}[rep.fits]
             rows.append(_print(
                 f"| {rep.target}{f' x{rep.devices}' if rep.devices > 1 else ''} | {s} | {preset} | {dtype} | "
                 f"{rep.param_dtype} | {cell(rep.argument_bytes)} | {cell(rep.output_bytes)} | "

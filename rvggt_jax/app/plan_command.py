@@ -154,6 +154,9 @@ def _describe(rep, target, label: str) -> list[str]:
     have = rep.memory_bytes
     share = f" ({rep.total_bytes / have:.0%})" if have else ""
     lines.append(f"  total        {fmt_bytes(rep.total_bytes)} of {fmt_bytes(have)}{share}: {rep.memory_what}")
+    if rep.compiler_checked:
+        lines.append("               (an upper bound: XLA:TPU counts more temporaries than it places at once, and "
+                     "it compiled the program for this chip's HBM)")
     lines.append(f"  (XLA's plan, compiled in {rep.compile_seconds:.1f} s; nothing ran)")
     return lines
 
@@ -237,6 +240,10 @@ def run_plan_command(args: argparse.Namespace) -> int:
     print("\n".join(_describe(rep, target, label)), flush=True)
     if rep.fits is None:
         print(f"memory of {target.name} unknown here: nothing to hold the plan against", flush=True)
+        return 0
+    if rep.fits and rep.compiler_checked and rep.headroom_bytes < 0:
+        print(f"FITS: XLA:TPU placed the program in the {fmt_bytes(rep.memory_bytes)} of HBM it compiled for.",
+              flush=True)
         return 0
     if rep.fits:
         print(f"FITS: {fmt_bytes(rep.headroom_bytes)} to spare.", flush=True)

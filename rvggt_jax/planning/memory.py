@@ -37,7 +37,13 @@ class MemoryReport:
     description), `attention` (the kernel in the program: "cudnn", "tpu_flash" or
     "blocked"), `fits` and `headroom_bytes`. XLA:TPU refuses a program larger than its
     HBM: such a report has `needed_bytes` (the figure of XLA's message, to 0.01 GiB) and
-    None for the four parts, which XLA never assigned.
+    None for the four parts, which XLA never assigned. A program XLA:TPU compiles for
+    a chip fits its HBM (`compiler_checked`): XLA:TPU's memory analysis counts more
+    temporaries than its memory-space assignment then places at once (at 1000 frames of
+    `regime` on a v6e: arguments + outputs + temporaries 39.6 GiB, the chip's program
+    and arguments 26.5 GiB; docs/benchmarks.md), so its total is an upper bound there.
+    `peak_bytes`: XLA's heap-simulator peak of the scheduled program, where the
+    compiler reports one.
     """
 
     frames: int
@@ -63,6 +69,8 @@ class MemoryReport:
     devices: int = 1
     needed_bytes: int | None = None
     image_dtype: str = "float32"  # the images' dtype in the program (uint8: 1/4 of the bytes)
+    peak_bytes: int | None = None
+    compiler_checked: bool = False  # compiled by a compiler that refuses what exceeds the memory
 
     @property
     def exhausted(self) -> bool:
@@ -82,6 +90,8 @@ class MemoryReport:
         """Whether the plan fits the target's memory (None: no target, or its memory unknown)."""
         if self.exhausted:
             return False
+        if self.compiler_checked:
+            return True
         return None if self.memory_bytes is None else self.total_bytes <= self.memory_bytes
 
     @property
@@ -97,6 +107,10 @@ class MemoryReport:
                 f"{self.total_bytes / gb:.1f} GB{per}")
         if self.exhausted:
             body = " (XLA refused it: more than the device's memory)"
+        elif self.compiler_checked:
+            body = (f" (arguments {self.argument_bytes / gb:.1f}, outputs {self.output_bytes / gb:.1f}, "
+                    f"temporaries {self.temp_bytes / gb:.1f}, an upper bound: the compiler placed it in the "
+                    f"device's memory)")
         else:
             body = (f" (arguments {self.argument_bytes / gb:.1f}, outputs {self.output_bytes / gb:.1f}, "
                     f"temporaries {self.temp_bytes / gb:.1f})")
@@ -192,7 +206,19 @@ def _report(compiled, seconds: float, fields: dict, **more) -> MemoryReport:
     m = compiled.memory_analysis()
     return MemoryReport(**fields, argument_bytes=int(m.argument_size_in_bytes),
                         output_bytes=int(m.output_size_in_bytes), temp_bytes=int(m.temp_size_in_bytes),
-                        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled, **more)
+                        alias_bytes=int(m.alias_size_in_bytes), compile_seconds=seconds, compiled=compiled,
+                        peak_bytes=_peak_bytes(compiled), **more)
+
+
+def _peak_bytes(compiled) -> int | None:
+    """XLA's heap-simulator peak of a compiled program: jaxlib's memory stats hold it, but
+    `Compiled.memory_analysis()` does not return it in JAX 0.10 (a private path, None
+    when it moves or the compiler reports none)."""
+    try:
+        peak = int(compiled._executable.xla_extension_executable().get_compiled_memory_stats().peak_memory_in_bytes)
+    except Exception:  # noqa: BLE001 - a private path: absent in other JAX versions
+        return None
+    return peak or None
 
 
 def _target_report(config, params, images, queries, target, devices: int, fields: dict) -> MemoryReport:
@@ -220,7 +246,8 @@ def _target_report(config, params, images, queries, target, devices: int, fields
         return MemoryReport(**fields, argument_bytes=None, output_bytes=None, temp_bytes=None, alias_bytes=None,
                             compile_seconds=time.perf_counter() - t0, needed_bytes=needed,
                             **{**more, "memory_bytes": have or available})
-    return _report(compiled, time.perf_counter() - t0, fields, **more)
+    # (XLA:TPU compiles a program for a chip only when it fits the chip's HBM)
+    return _report(compiled, time.perf_counter() - t0, fields, compiler_checked=target.platform == "tpu", **more)
 
 
 def _sharded_lowering(params, images, config, queries, mesh):

@@ -91,12 +91,18 @@ def test_gpu_plan_holds_cudnn_and_a_nearest_description_is_held_against_the_card
     small = dataclasses.replace(rep, memory_bytes=rep.total_bytes - 1)  # the same plan on a smaller card
     assert small.fits is False and small.headroom_bytes == -1
     assert "for rtx4090 of 24.0 GiB: fits" in str(rep)
+    assert not rep.compiler_checked  # XLA:GPU plans a program of any size: the sum is the verdict
 
 
 def test_tpu_plan_fits_and_names_the_pallas_kernel():
     rep = memory_report(plan_config(), 3, 28, 42, target="tpu-v6e")
     assert rep.fits and rep.attention == "tpu_flash" and not rep.exhausted
     assert rep.memory_bytes == tg.TARGETS["tpu-v6e"].memory_bytes and 0 < rep.total_bytes < rep.memory_bytes
+    # XLA:TPU compiles only what fits its HBM: the compile is the verdict, whatever the sum of
+    # its memory analysis says (an upper bound on the chip)
+    assert rep.compiler_checked and dataclasses.replace(rep, temp_bytes=rep.memory_bytes).fits
+    assert "an upper bound" in str(rep)
+    assert 0 < rep.peak_bytes <= rep.total_bytes  # XLA's heap-simulator peak, from jaxlib's stats
 
 
 def _oversized(a):
