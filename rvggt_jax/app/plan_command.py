@@ -157,6 +157,8 @@ def _describe(rep, target, label: str) -> list[str]:
     if rep.compiler_checked:
         lines.append("               (an upper bound: XLA:TPU counts more temporaries than it places at once, and "
                      "it compiled the program for this chip's HBM)")
+    if rep.peak_bytes:
+        lines.append(f"  peak         {fmt_bytes(rep.peak_bytes)} (XLA's heap simulation of the scheduled program)")
     lines.append(f"  (XLA's plan, compiled in {rep.compile_seconds:.1f} s; nothing ran)")
     return lines
 

@@ -145,5 +145,9 @@ def test_the_printed_plan_names_its_parts_and_the_target():
     assert "VGGT-1B, 1 x 1000 frames of 392 x 518 (uint8), preset regime, bfloat16 (weights bfloat16)" in lines
     assert "temporaries  10.00 MiB" in lines and "total        15.00 MiB of 20.00 MiB (75%): TPU v6e" in lines
     assert "libtpu's v6e (TPU v6 lite)" in lines and "attention    tpu_flash" in lines
+    assert "peak" not in lines and "upper bound" not in lines
+    compiled = "\n".join(pc._describe(dataclasses.replace(rep, peak_bytes=12 * mib, compiler_checked=True),
+                                      tg.TARGETS["tpu-v6e"], "VGGT-1B"))
+    assert "peak         12.00 MiB (XLA's heap simulation" in compiled and "an upper bound" in compiled
     refused = "\n".join(pc._describe(_report(memory_what="TPU v6e"), tg.TARGETS["tpu-v6e"], "VGGT-1B"))
     assert "n/a (XLA refused the program" in refused and "total        80.00 GiB of 32.00 GiB" in refused
