@@ -105,13 +105,21 @@ def aggregator_forward(
         carry, state = _scan_layers(p, carry, group, slot, pos, geom, config, shards, state,
                                     store=group[0] <= writes_global)
         if group[-1] in project:
-            # the layer as its slot and the stream hold it now: the next layer overwrites both
+            # the layer as its slots hold it now (every layer up to writes_global writes its
+            # global half too): the next layer overwrites them, in the buffers the
+            # projection's loop returns
             x, kept_frame, kept_global = carry
-            layer = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), int(slot[group[-1]]), 0, dtype)
-            projected[group[-1]] = project_layer(layer, project[group[-1]], dtype)
-            # the next scan starts after the projection read both (a dependency through
-            # one weight: a dependency of the stream, x + 0, gets a buffer of its own)
-            p = _after(p, stored(projected[group[-1]]))
+            i, k = group[-1], int(slot[group[-1]])
+            if i <= writes_global:
+                layer = KeptLayer(kept_frame, kept_global, k)
+            else:  # (no global slot: the global half is the stream, which the loop only reads)
+                layer = KeptLayer(kept_frame, x.reshape(1, b, s, num_tokens, c), k, 0, dtype)
+            projected[i], layer = project_layer(layer, project[i], dtype, clear=i not in keep)
+            carry = (x, layer.frame_buf, layer.global_buf if i <= writes_global else kept_global)
+            if i in keep or i > writes_global:
+                # a buffer the loop only reads: the next scan starts after it through one
+                # weight (a dependency of the stream, x + 0, gets a buffer of its own)
+                p = _after(p, stored(projected[i]))
     x, kept_frame, kept_global = carry
     out = {i: KeptLayer(kept_frame, kept_global, j) for j, i in enumerate(keep)}
     if last_is_x:

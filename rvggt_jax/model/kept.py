@@ -170,12 +170,21 @@ class ProjectedLayer:
         return cls(children[0], aux[0], aux[1], children[1])
 
 
-def project_layer(layer: KeptLayer, projection: Projection, dtype) -> jax.Array:
-    """The readers' first step on every frame of `layer` [B, S, P, 2C] -> [B*S, Q, F] in
-    `dtype` (16-bit: a `Bits16` buffer), computed for groups of frames whose float32
-    tokens take PROJECT_GROUP_BYTES (the layer's float32 copy never exists). When the
-    group does not divide B*S, the last group starts before the end and recomputes a few
-    frames (the first step is per frame: the same values)."""
+def project_layer(layer: KeptLayer, projection: Projection, dtype, clear: bool = True
+                  ) -> tuple[jax.Array, KeptLayer]:
+    """The readers' first step on every frame of `layer` [B, S, P, 2C] -> ([B*S, Q, F] in
+    `dtype` (16-bit: a `Bits16` buffer), the layer's buffers after it), computed for
+    groups of frames whose float32 tokens take PROJECT_GROUP_BYTES (the layer's float32
+    copy never exists). When the group does not divide B*S, the last group starts before
+    the end and recomputes a few frames (the first step is per frame: the same values).
+
+    The loop zeroes the first frame of each group in the layer's slots once read (no
+    later group reads it; the next layers overwrite the slots): a loop that only reads a
+    buffer passes it through, XLA drops the pass-through, and a later in-place update of
+    the buffer then needs a copy (XLA:CPU copied the kept frame halves and the stream:
+    +4 GB in dense's plan at 1000 frames of VGGT-1B). The next layers update the returned
+    buffers. A global half read from the stream (`layer.dtype` set) is left as it is, and
+    so is all of a layer kept whole too (`clear` False: its slots are its own)."""
     b, s, p, c2 = layer.shape
     n = b * s
     g = int(min(n, max(1, PROJECT_GROUP_BYTES // (p * c2 * 4))))
@@ -194,14 +203,43 @@ def project_layer(layer: KeptLayer, projection: Projection, dtype) -> jax.Array:
         # a copy of each whole buffer)
         group = projection.remat(group)
 
-    def body(i, buf):
-        start = jnp.minimum(i * g, n - g)
-        y = group(layer.frame_halves(start, g))
-        if isinstance(buf, Bits16):
-            return buf.update_rows(y, start)
-        return jax.lax.dynamic_update_slice_in_dim(buf, y.astype(dtype), start, 0)
+    def rebuilt(frame_buf, global_buf) -> KeptLayer:
+        return KeptLayer(frame_buf, global_buf, layer.slot, layer.global_slot, layer.dtype)
 
-    return jax.lax.fori_loop(0, groups, body, buf)
+    def body(i, carry):
+        buf, frame_buf, global_buf = carry
+        start = jnp.minimum(i * g, n - g)
+        y = group(rebuilt(frame_buf, global_buf).frame_halves(start, g))
+        if isinstance(buf, Bits16):
+            buf = buf.update_rows(y, start)
+        else:
+            buf = jax.lax.dynamic_update_slice_in_dim(buf, y.astype(dtype), start, 0)
+        if clear:
+            frame_buf = _zero_frame(frame_buf, layer.slot, start)
+        if clear and layer.dtype is None:
+            global_buf = _zero_frame(global_buf, layer.global_slot, start)
+        return buf, frame_buf, global_buf
+
+    buf, frame_buf, global_buf = jax.lax.fori_loop(0, groups, body, (buf, layer.frame_buf, layer.global_buf))
+    return buf, rebuilt(frame_buf, global_buf)
+
+
+def _set_frame(buf: jax.Array, x: jax.Array, index) -> jax.Array:
+    """buf [K, B, S, P, C] with frame `start` (of the flattened B*S) of slot `slot` set to
+    x [P, C]; index = (slot, start)."""
+    slot, start = index
+    flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])
+    zero = jnp.zeros((), jnp.int32)
+    return jax.lax.dynamic_update_slice(flat, x[None, None], (slot, start, zero, zero)).reshape(buf.shape)
+
+
+def _zero_frame(buf, slot, start):
+    """`_set_frame` with zeros, on a plain or a `Bits16` buffer."""
+    zeros = jnp.zeros(buf.shape[3:], buf.dtype)
+    index = (jnp.asarray(slot, jnp.int32), jnp.asarray(start, jnp.int32))
+    if isinstance(buf, Bits16):
+        return buf.update(_set_frame, zeros, index)
+    return _set_frame(buf, zeros, index)
 
 
 def _frames_of_slot(count: int):

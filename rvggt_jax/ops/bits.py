@@ -105,6 +105,11 @@ class Bits16:
         """`lax.dynamic_update_slice_in_dim(buffer, x, start, 0)` (x cast to the dtype)."""
         return Bits16(*_store_bits(_update_rows, self.bits, self.shadow, x.astype(self.dtype), start))
 
+    def update(self, op, x: jax.Array, index) -> "Bits16":
+        """op(buffer, x, index) (a lax dynamic update: linear in buffer and x), x cast to
+        the dtype."""
+        return Bits16(*_store_bits(op, self.bits, self.shadow, x.astype(self.dtype), index))
+
     def read(self, op, *index) -> jax.Array:
         """op(buffer, *index) (slicing ops only) in the float dtype."""
         return _load_bits(op, self.bits, self.shadow, *index)

@@ -221,9 +221,10 @@ def test_select_frames():
 
 
 def test_memory_check_refuses_with_what_to_change(monkeypatch):
-    # XLA's plan of the real VGGT-1B forward (compiled, not run): 200 frames at float32
-    # dense need far more than 16 GB; the message names the need, the limit, and the ways
-    # out; 2 frames fit.
+    # XLA's plan of the real VGGT-1B forward (compiled, not run): 300 frames at float32
+    # dense need more than 16 GB (19.7 GB; 200 frames, 14.8 GB, fit since layers 4 and 11
+    # are kept as their heads' projections); the message names the need, the limit, and
+    # the ways out; 2 frames fit.
     import dataclasses
 
     from rvggt_jax.config import VGGTConfig
@@ -234,11 +235,11 @@ def test_memory_check_refuses_with_what_to_change(monkeypatch):
     rep = check_fits(cfg, 2, 392, 518)
     assert 5e9 < rep.total_bytes < 16e9  # 4.7 GB of float32 weights + activations
     with pytest.raises(InsufficientMemoryError) as e:
-        check_fits(cfg, 200, 392, 518)
+        check_fits(cfg, 300, 392, 518)
     msg = str(e.value)
     assert "need" in msg and "16.0 GB" in msg and "--preset regime" in msg and "--dtype bfloat16" in msg
     n = int(msg.rsplit("--max-frames ", 1)[1])
-    assert 2 <= n < 200
+    assert 2 <= n < 300
 
 
 def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
