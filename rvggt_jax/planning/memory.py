@@ -40,8 +40,8 @@ class MemoryReport:
     None for the four parts, which XLA never assigned. A program XLA:TPU compiles for
     a chip fits its HBM (`compiler_checked`): XLA:TPU's memory analysis counts more
     temporaries than its memory-space assignment then places at once (at 1000 frames of
-    `regime` on a v6e: arguments + outputs + temporaries 39.6 GiB, the chip's program
-    and arguments 26.5 GiB; docs/benchmarks.md), so its total is an upper bound there.
+    `regime` on a v6e: arguments + outputs + temporaries 33.3 GiB, the chip's program
+    and arguments 21.8 GiB; docs/benchmarks.md), so its total is an upper bound there.
     `peak_bytes`: XLA's heap-simulator peak of the scheduled program, where the
     compiler reports one.
     """
