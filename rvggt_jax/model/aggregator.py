@@ -59,10 +59,10 @@ def aggregator_forward(
     their own, write no global half.
 
     A layer in `project` (`kept.Projection`: its readers' first step, e.g. the DPT heads'
-    norm and projection) ends its scan; the projection then reads its frame half from
-    the slot it was written to and its global half from the stream, before the next layer
-    overwrites either (`kept.project_layer`). Unless it is in `keep_layers` too, it
-    takes no slot of its own.
+    norm and projection) ends its scan; the projection then reads its halves from the
+    slots it wrote (its global half from the stream after the last-but-one kept layer),
+    before the next layer overwrites them (`kept.project_layer`). Unless it is in
+    `keep_layers` too, it takes no slot of its own.
 
     With `shards` (frames split over devices, inside `jax.shard_map`): S is this device's
     frames, every output holds them; the global blocks attend across all devices."""

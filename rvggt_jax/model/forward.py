@@ -219,10 +219,10 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
 
 def _head_projections(params: Params, config: VGGTConfig, grid, with_track: bool, enabled: dict,
                       per_group=None) -> dict:
-    """The kept layers held as the DPT heads' first step (`dpt.head_projections`): the
+    """The kept layers held as the DPT heads' first step (`projections.head_projections`): the
     layers only DPT heads read, where their projections are narrower than the tokens
     (VGGT-1B: layers 4 and 11, 512 and 1024 of 2048 channels for the depth and point
-    heads). None in a training step with remat: there each split of the aggregator's
+    heads). None ({}) in a training step with remat: there each split of the aggregator's
     scans costs residuals (a micro train step's temporaries grew a third: 5.2 -> 6.9 MB
     at 8 frames, more than the plain step's 6.8), and the heads' recomputed groups re-read
     the kept layers anyway; a layer's size matters at inference lengths."""

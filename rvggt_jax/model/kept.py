@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.bits import Bits16, read_buffer
+from rvggt_jax.ops.bits import Bits16, read_buffer, write_buffer
 from rvggt_jax.ops.ordering import zeros_from
 
 
@@ -210,10 +210,7 @@ def project_layer(layer: KeptLayer, projection: Projection, dtype, clear: bool =
         buf, frame_buf, global_buf = carry
         start = jnp.minimum(i * g, n - g)
         y = group(rebuilt(frame_buf, global_buf).frame_halves(start, g))
-        if isinstance(buf, Bits16):
-            buf = buf.update_rows(y, start)
-        else:
-            buf = jax.lax.dynamic_update_slice_in_dim(buf, y.astype(dtype), start, 0)
+        buf = write_buffer(buf, _set_rows, y, start)
         if clear:
             frame_buf = _zero_frame(frame_buf, layer.slot, start)
         if clear and layer.dtype is None:
@@ -235,11 +232,16 @@ def _set_frame(buf: jax.Array, x: jax.Array, index) -> jax.Array:
 
 def _zero_frame(buf, slot, start):
     """`_set_frame` with zeros, on a plain or a `Bits16` buffer."""
-    zeros = jnp.zeros(buf.shape[3:], buf.dtype)
     index = (jnp.asarray(slot, jnp.int32), jnp.asarray(start, jnp.int32))
-    if isinstance(buf, Bits16):
-        return buf.update(_set_frame, zeros, index)
-    return _set_frame(buf, zeros, index)
+    return write_buffer(buf, _set_frame, jnp.zeros(buf.shape[3:], buf.dtype), index)
+
+
+def _set_rows(buf: jax.Array, x: jax.Array, start) -> jax.Array:
+    return jax.lax.dynamic_update_slice_in_dim(buf, x, start, 0)
+
+
+def _set_slot(buf: jax.Array, x: jax.Array, k) -> jax.Array:
+    return jax.lax.dynamic_update_index_in_dim(buf, x, k, 0)
 
 
 def _frames_of_slot(count: int):
@@ -301,6 +303,4 @@ def write_slot(buf, x: jax.Array, k: jax.Array, dtype):
     """buf with slot k set to x in the compute dtype (in place). (lax's dynamic update,
     not .at[k].set: the latter is a scatter that XLA lowers with a bounds check, out of
     place: a copy of the kept buffer per step.)"""
-    if isinstance(buf, Bits16):
-        return buf.update_index(x, k)
-    return jax.lax.dynamic_update_index_in_dim(buf, x.astype(dtype), k, 0)
+    return write_buffer(buf, _set_slot, x.astype(dtype), k)

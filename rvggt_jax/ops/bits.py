@@ -11,6 +11,7 @@ is exact and converts only what is used. Why and what it saves: docs/memory_layo
     Bits16                    a 16-bit buffer held as bits (the kept layers, the blocked
                               kernel's K/V on a CPU)
     read_buffer(buf, op, ...) op on a plain array or a `Bits16` buffer
+    write_buffer(buf, op, x, index)  a dynamic update of either
 
 GPUs and TPUs slice, gather and move 16-bit floats natively, so the ops take the plain
 form there (`on_cpu`: the choice is made when the program is lowered for its platform,
@@ -97,18 +98,14 @@ class Bits16:
     def dtype(self):
         return self.shadow.dtype
 
-    def update_index(self, x: jax.Array, index) -> "Bits16":
-        """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
-        return Bits16(*_store_bits(_update_index, self.bits, self.shadow, x.astype(self.dtype), index))
-
-    def update_rows(self, x: jax.Array, start) -> "Bits16":
-        """`lax.dynamic_update_slice_in_dim(buffer, x, start, 0)` (x cast to the dtype)."""
-        return Bits16(*_store_bits(_update_rows, self.bits, self.shadow, x.astype(self.dtype), start))
-
     def update(self, op, x: jax.Array, index) -> "Bits16":
         """op(buffer, x, index) (a lax dynamic update: linear in buffer and x), x cast to
         the dtype."""
         return Bits16(*_store_bits(op, self.bits, self.shadow, x.astype(self.dtype), index))
+
+    def update_index(self, x: jax.Array, index) -> "Bits16":
+        """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
+        return self.update(_update_index, x, index)
 
     def read(self, op, *index) -> jax.Array:
         """op(buffer, *index) (slicing ops only) in the float dtype."""
@@ -128,12 +125,15 @@ def read_buffer(buf: "jax.Array | Bits16", op, *index) -> jax.Array:
     return buf.read(op, *index) if isinstance(buf, Bits16) else op(buf, *index)
 
 
+def write_buffer(buf: "jax.Array | Bits16", op, x: jax.Array, index) -> "jax.Array | Bits16":
+    """op(buf, x, index) for a plain array or a `Bits16` buffer, x cast to the buffer's
+    dtype; op a lax dynamic update (for `Bits16` applied to the bits and to the
+    tangents)."""
+    return buf.update(op, x, index) if isinstance(buf, Bits16) else op(buf, x.astype(buf.dtype), index)
+
+
 def _update_index(buf, x, index):
     return jax.lax.dynamic_update_index_in_dim(buf, x, index, 0)
-
-
-def _update_rows(buf, x, start):
-    return jax.lax.dynamic_update_slice_in_dim(buf, x, start, 0)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))

@@ -30,7 +30,7 @@ from rvggt_jax.model.params import Params
 # least the layers the head reads; each entry is a `KeptLayer` [B, S, P, 2E], which the
 # head slices per group of frames (a plain array is taken as `KeptLayer.of(array)`), or
 # a `ProjectedLayer` holding the head's first step on it (`projections.head_projections`).
-Aggregated = Sequence[KeptLayer | jax.Array] | Mapping[int, KeptLayer | jax.Array]
+Aggregated = Sequence[KeptLayer | ProjectedLayer | jax.Array] | Mapping[int, KeptLayer | ProjectedLayer | jax.Array]
 
 POS_EMBED_RATIO = 0.1
 POS_EMBED_OMEGA0 = 100.0
