@@ -1,15 +1,16 @@
 """Our presets against the PyTorch peers, on the same checkpoint and images, alternating.
 
     python benchmarks/bench_peers.py --torch-python /tmp/torchvenv/bin/python \\
-        --upstream-src /tmp/peers/vggt --fastvggt-src /tmp/peers/fastvggt --frames 16 64
+        --upstream-src /tmp/peers/vggt --fastvggt-src /tmp/peers/fastvggt \\
+        --regime-src /tmp/peers/regimevggt --frames 16 64
 
 Pairs (ours vs peer; a pair runs when its peer's source folder is given):
 
   dense     vs upstream VGGT           (--upstream-src: the folder holding vggt/)
   fastvggt  vs FastVGGT's own code     (--fastvggt-src: the folder holding merging/ and vggt/)
-
-(The RegimeVGGT authors' code, the third peer of issue 26, is not wired in: no snapshot of
-Brandon-Z-226/RegimeVGGT could be had on this machine.)
+  regime    vs the RegimeVGGT authors' code (--regime-src: upstream VGGT with the authors'
+            methods/, eval/ and vggt/ files written over it; see docs/benchmarks.md,
+            "Against the PyTorch peers", for how the folder is assembled)
 
 Layout: the benchmarks' speed layout (`bench_memory.small_layout`: 24 layers of width 64,
 one head of 64, DINO depth 1, DPT 16 -> 8/16/32/32), random weights drawn by upstream's
@@ -26,6 +27,14 @@ FastVGGT's configuration on our side: the `fastvggt` preset with duplicate_prote
 (FastVGGT's protected dst tokens appear twice among the keys/values, as its code does) and
 the point head off (FastVGGT's VGGT() default). Its dst draw is ours (dst_cells, seed 33)
 so that both pick the same dst patches.
+
+The authors' configuration on our side: the `regime` preset (their HYBRID_CONFIG as their
+code runs it, docs/method.md) with duplicate_protected=True (their protected dst tokens
+appear twice among the keys/values) and the point head off (their eval scripts run the
+camera and depth heads only); the dst draw is shared as for FastVGGT. Known remaining
+differences (docs/method.md): a protected dst token takes the output of its own un-merged
+query row in theirs (its group's row in ours), and at rho 0.99 theirs merges every
+unprotected src while ours merges the static min(int(rho N), N_src - P_max).
 
 Per frame count: one warm-up run of each side (ours: compile + run; outputs compared),
 then `--repeats` rounds; in each round every pair runs peer and ours back to back, the
@@ -108,7 +117,9 @@ def main(argv=None) -> None:
     ap.add_argument("--torch-python", required=True, help="a Python with torch, numpy, safetensors, einops")
     ap.add_argument("--upstream-src", help="folder holding the upstream vggt/ package (also writes the checkpoint)")
     ap.add_argument("--fastvggt-src", help="folder holding FastVGGT's merging/ and vggt/")
-    ap.add_argument("--peers", nargs="+", default=["upstream", "fastvggt"], choices=("upstream", "fastvggt"))
+    ap.add_argument("--regime-src", help="folder holding the RegimeVGGT authors' methods/ over upstream's vggt/")
+    ap.add_argument("--peers", nargs="+", default=["upstream", "fastvggt", "regime"],
+                    choices=("upstream", "fastvggt", "regime"))
     ap.add_argument("--frames", type=int, nargs="+", default=[16])
     ap.add_argument("--height", type=int, default=168)
     ap.add_argument("--width", type=int, default=224)
@@ -135,9 +146,12 @@ def main(argv=None) -> None:
     fast = dataclasses.replace(config, enable_point=False).with_compression("fastvggt", duplicate_protected=True)
     ours_cfg["fastvggt"] = fast
     ours_params["fastvggt"] = {k: v for k, v in params.items() if k != "point_head"}
-    pairs = [(o, p) for o, p in (("dense", "upstream"), ("fastvggt", "fastvggt"))
-             if p in args.peers and (p == "upstream" or args.fastvggt_src)]
-    srcs = {"upstream": args.upstream_src, "fastvggt": args.fastvggt_src}
+    regime = dataclasses.replace(config, enable_point=False).with_compression("regime", duplicate_protected=True)
+    ours_cfg["regime"] = regime
+    ours_params["regime"] = ours_params["fastvggt"]
+    srcs = {"upstream": args.upstream_src, "fastvggt": args.fastvggt_src, "regime": args.regime_src}
+    pairs = [(o, p) for o, p in (("dense", "upstream"), ("fastvggt", "fastvggt"), ("regime", "regime"))
+             if p in args.peers and srcs[p]]
 
     print(f"layout: depth {config.depth}, width {config.embed_dim}, head dim {config.head_dim}, "
           f"DINO depth {config.dino.depth}, DPT {config.dpt_head.features}; float32; jax {jax.__version__} "
@@ -152,10 +166,12 @@ def main(argv=None) -> None:
         peers, fns = {}, {}
         for ours, peer in pairs:
             peers[peer] = Peer(args.torch_python, peer, srcs[peer], work, work / f"images_{S}.npy", args.threads,
-                               work / f"dst_{S}.npy" if peer == "fastvggt" else None)
+                               work / f"dst_{S}.npy" if peer in ("fastvggt", "regime") else None)
             if S == args.frames[0]:
+                cfg_from = peers[peer].info.get("config_from")
                 print(f"{peer}: torch {peers[peer].info['torch']}, {peers[peer].info['threads']} threads; "
-                      f"CPU changes: " + " | ".join(peers[peer].info["cpu_changes"]), flush=True)
+                      + (f"configuration from {cfg_from}; " if cfg_from else "")
+                      + "CPU changes: " + " | ".join(peers[peer].info["cpu_changes"]), flush=True)
             fn = jax.jit(rvggt_jax.rvggt_forward)
             fns[ours] = (lambda f=fn, p=ours_params[ours], c=ours_cfg[ours]: jax.block_until_ready(f(p, images_j, c)))
         times = {(o, p): {"ours": [], "peer": []} for o, p in pairs}

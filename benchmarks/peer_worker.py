@@ -5,6 +5,10 @@ comes as the checkpoint's config.json). Peers:
 
   upstream  the upstream VGGT package (facebookresearch/vggt or the xianglic/vggt snapshot)
   fastvggt  FastVGGT's code (mystorm16/FastVGGT): merging in every global layer
+  regime    the RegimeVGGT authors' code (Brandon-Z-226/RegimeVGGT: methods/ and the vggt/
+            files it overlays on upstream VGGT), run as their eval scripts run it:
+            `methods.regimevggt.run_aggregator_regimevggt(model, images, **HYBRID_CONFIG)`,
+            then the camera and depth heads
 
 `--build` writes the random checkpoint (upstream's modules, `benchmarks/upstream.py`'s
 draw) and exits. Otherwise the worker loads the checkpoint and answers one JSON command per
@@ -47,6 +51,29 @@ CPU_CHANGES = {
         "modules), DPT head indices [0, 1, 2, 3] into its 4 kept layers, point head off "
         "(FastVGGT's VGGT() default enable_point=False), update_patch_dimensions(w, h) as "
         "its demo calls",
+    ],
+    "regime": [
+        "methods/regimevggt.py: its module-level `torch` is seen through the shim above "
+        "(torch.bfloat16 is torch.float32: the DPT intermediates' .to(torch.bfloat16) keeps "
+        "float32; the per-layer torch.cuda.synchronize/empty_cache are no-ops)",
+        "vggt/models/aggregator.py: its module-level `torch` through the same shim, so the "
+        "normalisation buffers _resnet_mean/_resnet_std that Aggregator.__init__ registers "
+        "are float32 (theirs: bfloat16, e.g. 0.484375 for 0.485; run_aggregator_regimevggt "
+        "normalises the images with them)",
+        "methods/fastvggt_merge.py: fast_similarity_chunks (torch.jit.script, bfloat16 bmm) "
+        "replaced by the same chunked bmm + max in float32",
+        "methods/fastvggt_merge.py: torch.randint of the per-cell dst choice returns our draw "
+        "(rvggt_jax.compression.partition.dst_cells with seed 33, passed as a file) so that "
+        "both pick the same dst patches; theirs is torch.Generator seeded 33 in every layer",
+        "matplotlib (imported by vggt/layers/attention.py for its attention-map plots, off) "
+        "stubbed when not installed",
+        "model built with the checkpoint's sizes (upstream.build_upstream with their modules), "
+        "DPT head indices [0, 1, 2, 3] into the 4 layers their aggregator keeps ([4, 11, 17, 23]), "
+        "point head not run (their eval scripts run the camera and depth heads only), "
+        "every attention layer's patch_width/patch_height set to the image's patch grid "
+        "(what FastVGGT's model.update_patch_dimensions, called by their eval, does)",
+        "configuration: HYBRID_CONFIG read from their eval/eval_scannet50.py, passed as their "
+        "eval passes it",
     ],
 }
 
@@ -224,17 +251,159 @@ def build_fastvggt(config, src: Path, ckpt: Path, dst_draw: np.ndarray | None, w
     return model, layer_box
 
 
+def hybrid_config(src: Path) -> tuple[dict, str]:
+    """The authors' HYBRID_CONFIG, read (ast, not imported: the script imports FastVGGT's
+    eval utilities) from <src>/eval/eval_scannet50.py (the configuration is theirs: this
+    repository keeps no copy of it)."""
+    import ast
+
+    f = src / "eval" / "eval_scannet50.py"
+    if not f.exists():
+        raise SystemExit(f"{f} is missing: the regime peer reads the authors' HYBRID_CONFIG from it "
+                         "(see docs/benchmarks.md, 'Against the PyTorch peers', for the folder)")
+    for node in ast.parse(f.read_text()).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "HYBRID_CONFIG" for t in node.targets):
+            call = node.value  # dict(key=literal, ...)
+            return {kw.arg: ast.literal_eval(kw.value) for kw in call.keywords}, str(f)
+    raise SystemExit(f"{f} has no HYBRID_CONFIG")
+
+
+def _stub_module(name: str):
+    """An empty module standing in for an optional import that is never used."""
+    import importlib.util
+
+    parent = name.split(".")[0]
+    if importlib.util.find_spec(parent) is not None:
+        return
+    for part in (parent, name):
+        sys.modules.setdefault(part, types.ModuleType(part))
+    setattr(sys.modules[parent], name.split(".")[-1], sys.modules[name])
+
+
+def _closure(fn) -> dict:
+    return dict(zip(fn.__code__.co_freevars, (c.cell_contents for c in fn.__closure__)))
+
+
+def _regime_diagnostics(tm, S: int, h: int, w: int, alpha: float, torch):
+    """Diagnosis only (environment variables), not CPU changes: wrap the authors'
+    token_merge_bipartite2d so that one known difference from ours at a time is removed.
+
+    PEER_DIAG_STATIC_R=1: merge r = min(int(rho N), N_src - P_max) src, ours (static) count,
+      P_max = (S-1) max(1, int(alpha h w)); theirs merges min(int(rho N), N_src,
+      unprotected src), more than ours when protected patches fall on dst cells (rho 0.99).
+      N_src is counted for an even patch grid (h, w even), as in the benchmark.
+    PEER_DIAG_DST_ROW_FOR_PROTECTED=1: after their unmerge, a protected dst token takes its
+      dst group's row (as ours does) instead of the output of its own un-merged query row."""
+    static_r = os.environ.get("PEER_DIAG_STATIC_R") == "1"
+    dst_row = os.environ.get("PEER_DIAG_DST_ROW_FOR_PROTECTED") == "1"
+    if not (static_r or dst_row):
+        return tm
+    n_dst = (5 + h * w) + (S - 1) * (5 + (h // 2) * (w // 2))
+    n_src = S * (5 + h * w) - n_dst
+    p_max = (S - 1) * max(1, int(h * w * alpha))
+
+    def wrapped(metric, w_, h_, sx, sy, r, *a, **k):
+        if static_r:
+            r = min(r, n_src - p_max)
+        merge, unmerge = tm(metric, w_, h_, sx, sy, r, *a, **k)
+        if not dst_row or not hasattr(unmerge, "size"):
+            return merge, unmerge
+        c = _closure(unmerge)
+        N = c["N"]
+        b = c["b_idx"][0, :, 0]
+        prot = c["protected_idx"][0, :, 0]
+        unm_len = c["unm_idx"].shape[1]
+        rank = torch.full((N,), -1, dtype=torch.long)
+        rank[b] = torch.arange(b.numel())
+        pd = prot[rank[prot] >= 0]
+
+        def unmerge2(x):
+            out = unmerge(x)
+            out[:, pd] = x[:, unm_len + rank[pd]]
+            return out
+
+        unmerge2.size, unmerge2.merged_global_idx = unmerge.size, unmerge.merged_global_idx
+        return merge, unmerge2
+
+    return wrapped
+
+
+def build_regime(config, src: Path, ckpt: Path, dst_draw: np.ndarray | None, S: int, w: int, h: int,
+                 trace: dict):
+    """The authors' model and forward (their eval's `infer_regimevggt_and_reconstruct`, the
+    model part): run_aggregator_regimevggt with HYBRID_CONFIG, camera head, depth head."""
+    import torch
+
+    _stub_module("matplotlib.pyplot")  # vggt/layers/attention.py plots attention maps (off)
+    sys.path.insert(0, str(src))
+    import methods.fastvggt_merge as fm
+    import methods.regimevggt as rv
+    import vggt.layers.attention as att_mod
+    import vggt.models.aggregator as agg_mod
+
+    from benchmarks.upstream import build_upstream
+
+    def randint(high, size=None, device=None, generator=None, **k):
+        if dst_draw is not None and tuple(size) == tuple(dst_draw.shape):
+            return torch.from_numpy(dst_draw.astype(np.int64))
+        return torch.randint(high, size=size, generator=generator, **k)
+
+    agg_mod.torch = _TorchF32(torch)
+    rv.torch = _TorchF32(torch)
+    fm.torch = _TorchF32(torch, randint)
+    fm.fast_similarity_chunks = _similarity_f32
+    cfg, cfg_from = hybrid_config(src)
+    tm = _regime_diagnostics(fm.token_merge_bipartite2d, S, h, w, cfg.get("merge_alpha", 0.1), torch)
+    rv.token_merge_bipartite2d = tm  # both call sites imported it by name
+    att_mod.token_merge_bipartite2d = tm
+
+    model = build_upstream(config, src)  # their modules (the folder's vggt package is first on sys.path)
+    from safetensors.torch import load_file
+
+    missing, _ = model.load_state_dict(load_file(str(ckpt / "model.safetensors")), strict=False)
+    if missing:
+        raise SystemExit(f"regime: parameters missing from the checkpoint: {missing[:5]}")
+    model.point_head = None
+    model.depth_head.intermediate_layer_idx = [0, 1, 2, 3]
+    for m in model.aggregator.modules():  # FastVGGT's VGGT.update_patch_dimensions(w, h)
+        if hasattr(m, "patch_width") and hasattr(m, "patch_height"):
+            m.patch_width, m.patch_height = w, h
+    model.eval()
+
+    if trace.get("layer", -1) != -1:  # every global layer's output, for a layer-by-layer comparison
+        blocks = list(model.aggregator.global_blocks)
+        hybrid = rv._hybrid_global_forward
+
+        def hybrid_traced(block, *a, **k):
+            out = hybrid(block, *a, **k)
+            trace[f"glob{blocks.index(block)}"] = out.detach().numpy().copy()
+            return out
+
+        rv._hybrid_global_forward = hybrid_traced
+        for i, blk in enumerate(blocks):  # merge-only layers call the block itself
+            blk.register_forward_hook(
+                lambda m, inp, out, i=i: trace.__setitem__(f"glob{i}", out.detach().numpy().copy()))
+
+    def forward(images):
+        output_list, psi = rv.run_aggregator_regimevggt(model, images, **cfg)
+        pose_enc = model.camera_head(output_list)[-1]
+        depth, depth_conf = model.depth_head(output_list, images=images, patch_start_idx=psi)
+        return {"pose_enc": pose_enc, "depth": depth, "depth_conf": depth_conf}
+
+    return forward, cfg_from
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
-    ap.add_argument("--kind", choices=("upstream", "fastvggt"), required=True)
+    ap.add_argument("--kind", choices=("upstream", "fastvggt", "regime"), required=True)
     ap.add_argument("--src", required=True)
     ap.add_argument("--ckpt", required=True, help="folder: config.json (+ model.safetensors unless --build)")
     ap.add_argument("--build", action="store_true", help="write model.safetensors and exit (upstream)")
     ap.add_argument("--images", help=".npy [1, S, 3, H, W] float32")
-    ap.add_argument("--dst-draw", help=".npy [S-1, h/2, w/2] int: dst cell choice (fastvggt)")
+    ap.add_argument("--dst-draw", help=".npy [S-1, h/2, w/2] int: dst cell choice (fastvggt, regime)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--trace-layer", type=int, default=-1, help="fastvggt: save the matching inputs and results of this global layer (-2: all) "
-                    "and every global block's output")
+                    "and every global block's output; regime: any value but -1 saves every global layer's output")
     args = ap.parse_args(argv)
 
     import torch
@@ -255,6 +424,7 @@ def main(argv=None):
     images = torch.from_numpy(np.load(args.images))
     trace = {"layer": args.trace_layer}
     box = None
+    extra = {}
     if args.kind == "upstream":
         from benchmarks.upstream import import_upstream
         from safetensors.torch import load_file
@@ -265,6 +435,11 @@ def main(argv=None):
         model = build_upstream(config, args.src)
         model.load_state_dict(load_file(str(ckpt / "model.safetensors")))
         model.eval()
+    elif args.kind == "regime":
+        draw = np.load(args.dst_draw) if args.dst_draw else None
+        h, w = images.shape[-2] // config.patch_size, images.shape[-1] // config.patch_size
+        model, cfg_from = build_regime(config, Path(args.src), ckpt, draw, images.shape[1], w, h, trace)
+        extra["config_from"] = cfg_from
     else:
         draw = np.load(args.dst_draw) if args.dst_draw else None
         if os.environ.get("PEER_DIAG_DST_ROW_FOR_PROTECTED") == "1":  # the dst set, from the draw
@@ -282,7 +457,7 @@ def main(argv=None):
         h, w = images.shape[-2] // config.patch_size, images.shape[-1] // config.patch_size
         model, box = build_fastvggt(config, Path(args.src), ckpt, draw, w, h, trace)
     print(json.dumps({"ready": args.kind, "torch": torch.__version__, "threads": torch.get_num_threads(),
-                      "cpu_changes": CPU_CHANGES[args.kind]}), flush=True)
+                      "cpu_changes": CPU_CHANGES[args.kind], **extra}), flush=True)
 
     for line in sys.stdin:
         cmd = json.loads(line)
