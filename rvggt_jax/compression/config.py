@@ -117,7 +117,9 @@ class CompressionConfig:
                          attention), folded into an extra Q/K column.
       duplicate_protected  reproduce the authors' artefact of the protected dst tokens
                          appearing twice among the keys/values (protected src appear
-                         once, as the authors'; off: no duplicate).
+                         once, as the authors'; off: no duplicate), each protected
+                         token's own query attending too, a protected dst taking its
+                         output (the authors' unmerge writes those rows last).
       dst_seed           seed of the fixed per-cell dst choice; -1 = top-left of every cell.
 
     K/V downsampling (axis 2)

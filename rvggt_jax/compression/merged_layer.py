@@ -9,7 +9,9 @@ after another (`head_groups`, `CompressionConfig.merge_head_groups`), the group 
 q, k and v (`merged_qkv`: summed chunk by chunk as they are projected, no full-sequence
 Q, K or V), the keys (`kept_keys`: all merged rows, or the K/V-downsampled slots, plus
 the authors' duplicated protected dst) and the attention (`attend`: one device, or
-around the ring); the unmerge inside the block. Heads attend independently, so the
+around the ring); the unmerge inside the block. With `duplicate_protected`, the
+protected tokens' own (un-merged) queries attend too, and each protected dst token takes
+its own row, as the authors' unmerge gives it (`protected_queries`, `unmerged_rows`). Heads attend independently, so the
 groups change no value; they bound the float32 sums and merged rows alive at once.
 
 Split over devices, the merged rows are split in `rows` per device (a padding group at
@@ -71,11 +73,14 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     slots, state = key_slots(plan, config, match, state)
     b, c = x.shape[0], x.shape[-1]
     groups = head_groups(config.num_heads, config.compression.merge_head_groups)
+    rows = share.rows + plan.n_dup  # the merged rows, then the protected tokens' own rows
 
     def group_attention(x, p_heads, heads, after):
         """(x, attention output [B, rows, heads, D]) of one group of heads."""
         x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, heads, after)
         keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, heads)
+        if plan.n_dup:
+            qm = jnp.concatenate([qm, protected_queries(p_heads, x, pos, plan, config, state, heads)], axis=1)
         return x, attend(qm, keys, plan, config, state.shards)
 
     if len(groups) == 1:
@@ -84,7 +89,7 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
         # equal groups: one loop, one compiled copy of the group's code (an unrolled loop
         # would compile the means, keys and attention once per group)
         heads = len(groups[0])
-        out = zeros_from((b, share.rows, config.num_heads, config.head_dim), config.compute_dtype, match.sizes)
+        out = zeros_from((b, rows, config.num_heads, config.head_dim), config.compute_dtype, match.sizes)
 
         def step(g, carry):
             x, out = carry
@@ -102,9 +107,9 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
         out = jnp.concatenate(outs, axis=2)  # [B, rows, H, D]
     # the output projection on the merged rows, then every token takes its group's row
     proj = p_block["attn"]["proj"]
-    out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, share.rows, c),),
+    out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, rows, c),),
                             bytes_per_row=b * c * 4 * 4)
-    return unmerge_block(p_block, x, out, share, config, state.shards), state
+    return unmerge_block(p_block, x, out, share, config, state.shards, own_rows(plan, x, state)), state
 
 
 def head_groups(num_heads: int, groups: int) -> tuple[range, ...]:
@@ -254,9 +259,39 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
     return Keys(kk, vv, g, valid, dup)
 
 
+def protected_queries(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerPlan, config,
+                      state: State, heads: int) -> jax.Array:
+    """q [B, n_dup, heads, D] of the protected tokens, un-merged (their own rows, on every
+    device): the authors append every protected token once more to the sequence, so
+    each is a query of its own."""
+    idx = state.protected_pos
+    rows = state.shards.take_rows(x, idx, plan.per_frame)
+    (q,) = layers.block_qkv(p_block, rows, heads, pos.frame_rows(idx % plan.per_frame), dtype=config.compute_dtype,
+                            parts="q")
+    return q
+
+
+def own_rows(plan: LayerPlan, x: jax.Array, state: State) -> jax.Array | None:
+    """With `n_dup`: [B, N_local] int32, for each of this device's tokens the index of its
+    own row among the protected tokens' rows when it is a protected dst, else -1. The
+    authors' unmerge writes the protected tokens' rows last, so a protected dst takes the
+    output of its own query, not its group's (the src merged into it keep the group's).
+    A protected src is never merged: its group's row is its own already."""
+    if not plan.n_dup:
+        return None
+    b, n = x.shape[:2]
+    idx = state.protected_pos  # [B, n_dup] global positions
+    rel = idx - state.shards.offset(plan.per_frame)
+    is_dst = jnp.take(jnp.asarray(plan.partition.is_dst), idx, mode="clip")
+    mine = is_dst & (rel >= 0) & (rel < n)
+    slot = jnp.broadcast_to(jnp.arange(idx.shape[1], dtype=jnp.int32), idx.shape)
+    return jnp.full((b, n), -1, jnp.int32).at[jnp.arange(b)[:, None], jnp.where(mine, rel, n)].set(slot, mode="drop")
+
+
 def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards) -> jax.Array:
-    """The merged queries [B, rows, H, D] against the layer's keys, with the size bias
-    log g (and the invalid slots masked) -> [B, rows, H, D]."""
+    """The merged queries [B, rows, H, D] (then, with `n_dup`, the protected tokens' own
+    queries [B, n_dup, H, D]) against the layer's keys, with the size bias log g (and the
+    invalid slots masked) -> [B, rows (+ n_dup), H, D]."""
     comp = config.compression
 
     def bias(g, valid, masked):
@@ -274,18 +309,25 @@ def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShar
         return ring_attention(with_dependency(qm, keys.v), with_dependency(keys.k, keys.v), keys.v, log_g, shards,
                               extra)
     log_g = bias(keys.sizes, keys.valid, plan.masked) if plan.size_column else None
-    check_shapes(plan, comp, qm.shape[1], keys.k, log_g)
+    check_shapes(plan, comp, qm.shape[1] - plan.n_dup, keys.k, log_g)
     return attention(qm, keys.k, keys.v, log_g)
 
 
-def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, config, shards: FrameShards
-                  ) -> jax.Array:
+def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, config, shards: FrameShards,
+                  own: jax.Array | None = None) -> jax.Array:
     """The block around the merged attention: its hook unmerges the projected merged rows
-    out [B, rows, C], each token taking its group's row (over devices, the rows travel
-    around the ring)."""
+    out [B, rows (+ n_dup), C], each token taking its group's row (over devices, the rows
+    travel around the ring), or with `own` ([B, N] from `own_rows`) a protected dst its
+    own row (the n_dup rows after the merged ones; every device holds them all)."""
     dtype = config.compute_dtype
+    group = share.group
     if not shards.sharded:
-        return layers.block_with_attention(p_block, x, lambda xc, gc: merge_lib.unmerge(out, gc), (share.group,),
+        if own is not None:
+            group = jnp.where(own >= 0, share.rows + own, group)
+        return layers.block_with_attention(p_block, x, lambda xc, gc: merge_lib.unmerge(out, gc), (group,),
                                            dtype=dtype, projected=True)
-    return layers.block_with_attention(p_block, x, lambda xc, rc: rc, (shards.ring_take(out, share.group),),
-                                       dtype=dtype, projected=True)
+    rows = shards.ring_take(out[:, :share.rows], group)
+    if own is not None:
+        mine = chunks.take_along(out[:, share.rows:], jnp.maximum(own, 0), axis=1)
+        rows = jnp.where((own >= 0)[..., None], mine, rows)
+    return layers.block_with_attention(p_block, x, lambda xc, rc: rc, (rows,), dtype=dtype, projected=True)

@@ -7,7 +7,8 @@ data-dependent)], N_m = N_dst + U = N - r. K/V slots: the dst kept for static re
 (`kv_fixed`, static indices), then `n_dyn` slots compacted from the data-dependent
 candidates (unmerged src on the sub-grid; Psi-protected tokens in the paper variant),
 then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
-default; a slot whose protected token is a src stays empty).
+default; a slot whose protected token is a src stays empty); with them, `n_dup` query
+rows after the N_m merged ones (every protected token's own query).
 Slots left empty are masked through the size column (g = 0 -> a large negative finite
 logit).
 """

@@ -96,7 +96,8 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
             lin = _block_linear_flops(N, N, N, c, hidden)
             fixed, dyn, dup, exp_fill = L, 0, 0, float(L)
         else:
-            q, kv = plan.n_query, plan.n_kv
+            # (with duplicate_protected, the protected tokens' own queries attend too)
+            q, kv = plan.n_query + plan.n_dup, plan.n_kv
             dqk = padded_head_dim(d, plan.size_column, comp.head_pad_multiple)
             dv = d if comp.head_pad_multiple == 1 or not plan.size_column else dqk
             attn = _attn_flops(q, kv, heads, dqk, dv)

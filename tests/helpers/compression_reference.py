@@ -99,7 +99,8 @@ def reference_block(p, x: np.ndarray, pos, heads: int, rope_freq: float, parent:
     Groups are the tokens sharing a parent; queries and keys are group means of q, k, v;
     a group is a key when its parent is kept; logits get + log(group size).
     extra_pos: positions whose own (un-merged) k, v are appended once more as size-1 keys
-    when kept by the rule at their position (the authors' duplicated protected tokens)."""
+    when kept by the rule at their position, and whose own q attends as a query of its
+    own, its output that token's (the authors' duplicated protected dst tokens)."""
     xj = jnp.asarray(x[None], jnp.float32)
     xn = layers.layer_norm(p["norm1"], xj)
     q, k, v = (np.asarray(t[0], np.float64) for t in layers.attention_qkv(p["attn"], xn, heads, pos, rope_freq))
@@ -116,18 +117,21 @@ def reference_block(p, x: np.ndarray, pos, heads: int, rope_freq: float, parent:
     if extra_pos is not None:
         ex = extra_pos if kv_keep_pos is None else extra_pos[kv_keep_pos[extra_pos]]
         kk, vv, lg = np.concatenate([kk, k[ex]]), np.concatenate([vv, v[ex]]), np.concatenate([lg, np.zeros(ex.size)])
-    out = np.zeros_like(qm)
+    queries = qm if extra_pos is None else np.concatenate([qm, q[extra_pos]])
+    out = np.zeros_like(queries)
     for hh in range(h):
-        logits = qm[:, hh] @ kk[:, hh].T / math.sqrt(d)
+        logits = queries[:, hh] @ kk[:, hh].T / math.sqrt(d)
         if size_bias:
             logits = logits + lg[None]
         logits -= logits.max(1, keepdims=True)
         wgt = np.exp(logits)
         wgt /= wgt.sum(1, keepdims=True)
         out[:, hh] = wgt @ vv[:, hh]
-    out = out.reshape(reps.size, h * d)
+    out = out.reshape(len(queries), h * d)
     proj = out @ np.asarray(p["attn"]["proj"]["kernel"], np.float64) + np.asarray(p["attn"]["proj"]["bias"])
     attn_tok = proj[gid]
+    if extra_pos is not None:  # each duplicated token takes its own query's row
+        attn_tok[extra_pos] = proj[reps.size:]
     y = x.astype(np.float64) + np.asarray(p["ls1"]["gamma"], np.float64) * attn_tok
     yj = jnp.asarray(y[None], jnp.float32)
     mlp = np.asarray(layers.mlp(p["mlp"], layers.layer_norm(p["norm2"], yj))[0], np.float64)

@@ -174,14 +174,16 @@ def main() -> None:
     report: dict = {"devices": len(jax.devices()), "runs": []}
 
     # (devices, preset, with track): 8 frames on 4 devices, and on 3 (uneven: padded to 9,
-    # returned padded; the S-frame form is its slice)
+    # returned padded; the S-frame form is its slice). "+dup": duplicate_protected (the
+    # protected tokens' own queries, replicated on every device, and their own rows)
     frames = 8
     cases = [(4, "dense", True), (4, "regime", True), (4, "fastvggt", False),
-             (3, "dense", False), (3, "regime", True), (3, "fastvggt", False)]
+             (3, "dense", False), (3, "regime", True), (3, "regime+dup", False)]
     refs = {}
     for devices, preset, track in cases:
         uneven = frames % devices != 0
-        cfg = config if preset == "dense" else config.with_compression(preset)
+        name, _, dup = preset.partition("+")
+        cfg = config if name == "dense" else config.with_compression(name, duplicate_protected=bool(dup))
         images = jax.random.uniform(jax.random.PRNGKey(frames), (1, frames, 3, H, W))
         qp = queries if track else None
         mesh = frames_mesh(devices)
