@@ -46,6 +46,8 @@ def dynamic_slots(plan: LayerPlan, comp: CompressionConfig, match: Match | None,
         return KVSlots(jnp.take(jnp.asarray(cand, jnp.int32), idx, mode="clip"), ok)
     unm_pos = match.unm_pos  # [B, U]
     valid = jnp.take(jnp.asarray(keep_np), unm_pos, mode="clip")
+    if plan.r_max > plan.r:  # (a row whose src merged beyond the static r is empty)
+        valid = valid & (match.sizes[:, plan.n_dst:] > 0)
     if keep_protected:
         valid = valid | jnp.take_along_axis(protected, unm_pos, axis=1, mode="promise_in_bounds")
     cand = plan.n_dst + jnp.broadcast_to(jnp.arange(plan.n_unm, dtype=jnp.int32), unm_pos.shape)

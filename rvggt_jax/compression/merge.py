@@ -26,7 +26,8 @@ class Match(NamedTuple):
     """The data-dependent result of matching (a pytree)."""
 
     group: jax.Array  # [B, N] int32: every token's group in the query layout [dst (N_dst) ; unmerged src (U)]
-    sizes: jax.Array  # [B, N_m] float32: g = 1 + number of src merged into a dst, 1 otherwise
+    sizes: jax.Array  # [B, N_m] float32: g = 1 + number of src merged into a dst, 1 for an
+    # unmerged src, 0 for an empty row (its src merged beyond the static r: `LayerPlan.r_max`)
     unm_pos: jax.Array  # [B, U] int32: positions of the unmerged src, in query-layout order
 
     @classmethod
@@ -299,6 +300,13 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
         merged, rank, unmerged = select_best(score, r)
+        if plan.r_max > r:
+            # the authors' count: every unprotected src among the r_max best merges, as many
+            # more than the static r as there are protected dst; the extra ones keep their
+            # row of the static layout, empty (size 0)
+            merged = select_best(score, plan.r_max)[0]
+            if protected_src is not None:
+                merged = merged & ~protected_src
         group_src = jnp.where(merged, arg, n_dst + rank)
         unm_pos = jnp.take(jnp.asarray(part.src_pos, jnp.int32), unmerged, mode="clip")
     else:
@@ -324,7 +332,10 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
     group = jnp.take(jnp.concatenate([dst_ranks, group_src], axis=1), part.perm_to_pos, axis=1, mode="clip")
     counts = jax.vmap(lambda g, w: jax.ops.segment_sum(w, g, num_segments=n_dst + 1))(
         jnp.where(merged, group_src, n_dst), merged.astype(jnp.float32))[:, :n_dst]
-    sizes = jnp.concatenate([1.0 + counts, jnp.ones((b, U), jnp.float32)], axis=1)
+    unm_sizes = jnp.ones((b, U), jnp.float32)
+    if plan.r_max > r:  # an unmerged row whose src merged after all is empty
+        unm_sizes = 1.0 - jnp.take_along_axis(merged, unmerged, axis=1, mode="promise_in_bounds").astype(jnp.float32)
+    sizes = jnp.concatenate([1.0 + counts, unm_sizes], axis=1)
     return Match(group, sizes, unm_pos.astype(jnp.int32))
 
 
@@ -369,6 +380,8 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
         sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
     sizes = match.sizes
+    # (an empty row's sums are 0: its mean 0, no key and nobody's group)
+    sizes = jnp.maximum(sizes, 1.0)
     means = materialized(tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype)
                                for a, o in zip(sums, spec)))
     return (x0, *means) if owned else means

@@ -186,7 +186,8 @@ def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Mat
                                                 bytes_per_row=b * c * 4 * 2 + c * 4, dep=after)
         sums = shards.ring_sum_scatter(
             lambda block, acc: merge_lib.block_sums(vals, share.group - block * share.rows, share.rows, into=acc))
-        return xs, merge_lib.materialized((sums / share.sizes[..., None, None]).astype(vals.dtype))
+        sizes = jnp.maximum(share.sizes, 1.0)[..., None, None]  # (empty rows: 0 / 1)
+        return xs, merge_lib.materialized((sums / sizes).astype(vals.dtype))
 
     x, qm = means(x, "q", after)  # [B, rows, heads, D]: this device's merged rows
     x, km = means(x, "k", qm)
@@ -228,6 +229,8 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
         kk, vv, g, valid = km, vm, (share.sizes if ring else match.sizes), None
         if ring:
             valid = jnp.broadcast_to(own_rows < plan.n_query, (b, share.rows))
+        if plan.r_max > plan.r:  # rows emptied by merges beyond the static r are no keys
+            valid = g > 0 if valid is None else valid & (g > 0)
     else:
         sel, valid = slots
         if ring:  # this device's merged rows, the kept ones marked (the slots are distinct rows)

@@ -63,6 +63,10 @@ class LayerPlan:
     r_frame: int  # r per frame (frame scope)
     match_pairs: int  # src x dst similarity pairs evaluated when match == "compute"
     protect_per_frame: int  # protected patches per frame >= 1 (saliency protection)
+    # The most src a merging layer merges: min(int(rho N), N_src). Under saliency protection
+    # (sequence scope) the authors merge min(r_max, unprotected src), data-dependent and at
+    # least r: the extra ones leave their rows of the static layout empty (`Match.sizes` 0).
+    r_max: int = 0
     # The static index sets of a compressed layer (None for DENSE and FRAME), computed with
     # the plan so that the block reads them from it (not compared: they follow from the
     # fields above and the configuration).
@@ -191,13 +195,17 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
     exp_dup = 0.0
     if n_dup:
         exp_dup = _expected_duplicates(comp, part, keep if dup_masked else None, geom)
-    # a duplicate slot is empty when its protected token is a src (or off the K/V grid)
-    masked = n_dyn > 0 or n_dup > 0
+    # a duplicate slot is empty when its protected token is a src (or off the K/V grid); an
+    # unmerged row when its src merged beyond the static r
+    r_max = r
+    if comp.match_scope == "sequence" and comp.protect == "saliency":
+        r_max = max(r, min(int(geom.tokens * comp.layer_merge_ratio(layer)), n_src))
+    masked = n_dyn > 0 or n_dup > 0 or r_max > r
     return LayerPlan(kind=LayerKind.MERGE, r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query,
                      kv_mode=kv_mode, n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
                      expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
                      size_column=masked or comp.size_bias,
-                     match=match, match_key=key, r_frame=r_f, match_pairs=pairs,
+                     match=match, match_key=key, r_frame=r_f, match_pairs=pairs, r_max=r_max,
                      fixed_kv=_ro(np.flatnonzero(keep[part.dst_pos])) if kv_mode == "select" else None,
                      **index, **base)
 

@@ -117,7 +117,7 @@ def test_block_equals_float64_reference(block_params, case):
         else:
             metric = np.asarray(x[bi], np.float64) if plan.metric == "input" else xn[bi]
             frame_of = None if cc.match_scope == "sequence" else np.arange(N) // L
-            r = plan.r if cc.match_scope == "sequence" else plan.r_frame
+            r = plan.r_max if cc.match_scope == "sequence" else plan.r_frame
             parent, (gap, second) = reference_match(metric, part.is_dst, prot[bi], r, frame_of)
             assert gap > 1e-5 and second > 1e-5
         extra = np.flatnonzero(prot[bi]) if cc.duplicate_protected and plan.kind == "merge" else None

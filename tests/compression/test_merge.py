@@ -55,7 +55,7 @@ def test_match_equals_reference(scope, rho):
     parents = _parents(match, part, plan)
     for bi in range(metric.shape[0]):
         frame_of = None if scope == "sequence" else np.arange(N) // L
-        r = plan.r if scope == "sequence" else plan.r_frame
+        r = plan.r_max if scope == "sequence" else plan.r_frame
         ref, (gap, second) = reference_match(metric[bi].astype(np.float64), part.is_dst, prot[bi], r, frame_of)
         assert gap > 1e-5 and second > 1e-5  # no near-ties on this data
         np.testing.assert_array_equal(parents[bi], ref)
@@ -80,7 +80,11 @@ def test_protected_never_merged_and_sizes_count_groups():
         np.testing.assert_array_equal(np.bincount(group[bi], minlength=plan.n_query), sizes[bi])
         assert sizes[bi].sum() == N
         merged_src = (parents[bi] != np.arange(N))
-        assert merged_src.sum() == plan.r
+        # the authors' count: every unprotected src (rho 0.99), more than the static r by
+        # the protected dst; their rows of the static layout are empty
+        unprotected_src = int((~part.is_dst & ~prot[bi]).sum())
+        assert plan.r < plan.r_max and merged_src.sum() == min(plan.r_max, unprotected_src) > plan.r
+        assert (sizes[bi] == 0).sum() == merged_src.sum() - plan.r
         assert part.is_dst[parents[bi][merged_src]].all()  # merged into dst only
         assert (~part.is_dst[merged_src]).all()  # only src merge
 
@@ -98,7 +102,11 @@ def test_merge_unmerge_identity_and_group_outputs():
     xs = np.asarray(x)
     for bi in range(2):
         for g in range(plan.n_query):
-            np.testing.assert_allclose(m[bi, g], xs[bi][group[bi] == g].mean(0), rtol=1e-5, atol=1e-6)
+            members = xs[bi][group[bi] == g]
+            # (no protection given: every src among the r_max best merges, and the rows
+            # of the static layout left without a member are empty, their mean 0)
+            want = members.mean(0) if len(members) else np.zeros(xs.shape[-1], np.float32)
+            np.testing.assert_allclose(m[bi, g], want, rtol=1e-5, atol=1e-6)
     y = merge_lib.unmerge(m, match.group)
     for bi in range(2):
         for n in range(N):
@@ -117,8 +125,10 @@ def test_dynamic_kv_slots_hold_exactly_the_kept_unmerged_src():
     from rvggt_jax.compression.partition import kv_static_keep
     keep = kv_static_keep(Geometry(S, H, W, NS), plan.tile, True, True)
     unm = np.asarray(match.unm_pos)
+    sizes = np.asarray(match.sizes)[:, plan.n_dst:]
+    assert (sizes == 0).any()  # rows emptied by merges beyond the static r: no slot of theirs
     for bi in range(2):
-        want = {plan.n_dst + u for u in range(plan.n_unm) if keep[unm[bi, u]]}
+        want = {plan.n_dst + u for u in range(plan.n_unm) if keep[unm[bi, u]] and sizes[bi, u] > 0}
         got = set(np.asarray(idx[bi])[np.asarray(ok[bi])].tolist())
         assert got == want
         assert len(want) <= plan.n_dyn

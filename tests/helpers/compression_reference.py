@@ -59,7 +59,8 @@ def kept_by_rule(f: int, i: int, j: int, h: int, w: int, tile, phase: bool) -> b
 
 def reference_match(metric: np.ndarray, is_dst: np.ndarray, protected: np.ndarray, r: int,
                     frame_of: np.ndarray | None = None):
-    """One batch element. metric [N, C]; is_dst / protected [N] bool; r merges.
+    """One batch element. metric [N, C]; is_dst / protected [N] bool; r merges at most
+    (the authors' count: min(r, unprotected src), the best-scoring unprotected src).
     Returns (parent [N]: the dst position each token is grouped with (itself if not
     merged), margins (top-r score gap, min best-vs-second gap of merged src)).
     frame_of: per-position frame, restricting matches to the same frame (frame scope),
@@ -80,7 +81,7 @@ def reference_match(metric: np.ndarray, is_dst: np.ndarray, protected: np.ndarra
         srt = np.sort(sims, axis=1)
         score = np.where(protected[src], -np.inf, score)
         order = np.argsort(-score, kind="stable")
-        chosen = order[:r]
+        chosen = order[:min(r, int((~protected[src]).sum()))]
         parent[src[chosen]] = dst[best[chosen]]
         if r < src.size:
             gaps.append(score[order[r - 1]] - score[order[r]])
