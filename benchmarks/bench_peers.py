@@ -31,10 +31,8 @@ so that both pick the same dst patches.
 The authors' configuration on our side: the `regime` preset (their HYBRID_CONFIG as their
 code runs it, docs/method.md) with duplicate_protected=True (their protected dst tokens
 appear twice among the keys/values) and the point head off (their eval scripts run the
-camera and depth heads only); the dst draw is shared as for FastVGGT. Known remaining
-differences (docs/method.md): a protected dst token takes the output of its own un-merged
-query row in theirs (its group's row in ours), and at rho 0.99 theirs merges every
-unprotected src while ours merges the static min(int(rho N), N_src - P_max).
+camera and depth heads only); the dst draw is shared as for FastVGGT. The two agree to
+float32 rounding (docs/benchmarks.md, "Against the PyTorch peers").
 
 Per frame count: one warm-up run of each side (ours: compile + run; outputs compared),
 then `--repeats` rounds; in each round every pair runs peer and ours back to back, the

@@ -288,12 +288,14 @@ def _regime_diagnostics(tm, S: int, h: int, w: int, alpha: float, torch):
     """Diagnosis only (environment variables), not CPU changes: wrap the authors'
     token_merge_bipartite2d so that one known difference from ours at a time is removed.
 
-    PEER_DIAG_STATIC_R=1: merge r = min(int(rho N), N_src - P_max) src, ours (static) count,
+    (Both were our behaviour before 2026-12-04, when they explained the whole difference;
+    ours now does as theirs, so with either switch the two differ again.)
+    PEER_DIAG_STATIC_R=1: merge r = min(int(rho N), N_src - P_max) src, the static count,
       P_max = (S-1) max(1, int(alpha h w)); theirs merges min(int(rho N), N_src,
-      unprotected src), more than ours when protected patches fall on dst cells (rho 0.99).
+      unprotected src), more when protected patches fall on dst cells (rho 0.99).
       N_src is counted for an even patch grid (h, w even), as in the benchmark.
     PEER_DIAG_DST_ROW_FOR_PROTECTED=1: after their unmerge, a protected dst token takes its
-      dst group's row (as ours does) instead of the output of its own un-merged query row."""
+      dst group's row instead of the output of its own un-merged query row."""
     static_r = os.environ.get("PEER_DIAG_STATIC_R") == "1"
     dst_row = os.environ.get("PEER_DIAG_DST_ROW_FOR_PROTECTED") == "1"
     if not (static_r or dst_row):
