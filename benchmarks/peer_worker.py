@@ -179,6 +179,17 @@ def _diagnostic_keep_dst_rows(att_mod, torch):
     att_mod.token_merge_bipartite2d = tm
 
 
+def _shared_draw(torch, dst_draw: np.ndarray | None):
+    """torch.randint as the peer's merge calls it, except that the per-cell dst draw (a call
+    of dst_draw's shape) returns our draw, so that both sides pick the same dst patches."""
+    def randint(high, size=None, device=None, generator=None, **k):
+        if dst_draw is not None and tuple(size) == tuple(dst_draw.shape):
+            return torch.from_numpy(dst_draw.astype(np.int64))
+        return torch.randint(high, size=size, generator=generator, **k)
+
+    return randint
+
+
 _DIAG: dict = {}
 
 
@@ -193,10 +204,7 @@ def build_fastvggt(config, src: Path, ckpt: Path, dst_draw: np.ndarray | None, w
 
     from benchmarks.upstream import build_upstream
 
-    def randint(high, size=None, device=None, generator=None, **k):
-        if dst_draw is not None and tuple(size) == tuple(dst_draw.shape):
-            return torch.from_numpy(dst_draw.astype(np.int64))
-        return torch.randint(high, size=size, generator=generator, **k)
+    randint = _shared_draw(torch, dst_draw)
 
     agg_mod.torch = _TorchF32(torch)
     mm.torch = _TorchF32(torch, randint)
@@ -345,10 +353,7 @@ def build_regime(config, src: Path, ckpt: Path, dst_draw: np.ndarray | None, S: 
 
     from benchmarks.upstream import build_upstream
 
-    def randint(high, size=None, device=None, generator=None, **k):
-        if dst_draw is not None and tuple(size) == tuple(dst_draw.shape):
-            return torch.from_numpy(dst_draw.astype(np.int64))
-        return torch.randint(high, size=size, generator=generator, **k)
+    randint = _shared_draw(torch, dst_draw)
 
     agg_mod.torch = _TorchF32(torch)
     rv.torch = _TorchF32(torch)
