@@ -259,9 +259,11 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rvggt` console script; returns the exit status."""
-    from rvggt_jax.ops.xla_cpu import prefer_threaded_convolutions
+    from rvggt_jax.ops.xla_cpu import prefer_threaded_convolutions, use_cpu_without_accelerator
 
-    prefer_threaded_convolutions()  # before anything starts JAX: multi-threaded CPU convolutions
+    # before anything starts JAX: no probing of absent accelerators, multi-threaded CPU convolutions
+    use_cpu_without_accelerator()
+    prefer_threaded_convolutions()
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] == "convert":

@@ -1,4 +1,5 @@
-"""XLA:CPU setting the model needs for speed: multi-threaded convolutions.
+"""XLA:CPU settings: multi-threaded convolutions (the model needs them for speed), and
+the CPU backend on a host without accelerators (`use_cpu_without_accelerator`).
 
 jaxlib 0.10 hands every f32 NHWC convolution to YNNPACK, which runs it on one thread:
 the DPT heads' 3x3 convolutions then leave all other cores idle (measured: 1.0 cores
@@ -30,6 +31,7 @@ before anything starts JAX:
 from __future__ import annotations
 
 import os
+import sys
 
 FLAG = "--xla_cpu_experimental_ynn_fusion_type=-individual_convolution"
 FLAG_NAME = FLAG.split("=")[0]
@@ -74,3 +76,25 @@ def prefer_threaded_convolutions() -> bool:
 def applied() -> bool:
     """Whether the flag was set by rvggt_jax in this process."""
     return _applied
+
+
+# Device nodes of the accelerators JAX's plugins drive on Linux: NVIDIA GPUs, AMD GPUs
+# (ROCm), TPUs (/dev/accel*, or VFIO on some TPU VMs).
+ACCELERATOR_NODES = ("/dev/nvidiactl", "/dev/kfd", "/dev/accel0", "/dev/vfio")
+
+
+def use_cpu_without_accelerator(nodes: tuple[str, ...] = ACCELERATOR_NODES) -> bool:
+    """On a Linux host with none of the accelerators' device nodes, JAX on its CPU backend
+    (JAX_PLATFORMS=cpu), unless the user chose platforms (JAX_PLATFORMS set) or a backend
+    runs already. Without it JAX initialises every installed plugin first, and the
+    `[plan]` extra's CUDA and TPU plugins each print a traceback on a machine without
+    their device (the `rvggt` command calls it first thing). Returns whether it set it."""
+    if os.environ.get("JAX_PLATFORMS") or not sys.platform.startswith("linux") or _backends_started():
+        return False
+    if any(os.path.exists(n) for n in nodes):
+        return False
+    os.environ["JAX_PLATFORMS"] = "cpu"
+    if "jax" in sys.modules:  # (JAX read the environment when it was imported)
+        sys.modules["jax"].config.update("jax_platforms", "cpu")
+    return True
+

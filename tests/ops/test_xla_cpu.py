@@ -72,3 +72,40 @@ def test_users_own_flag_wins():
 
 def test_no_effect_once_a_backend_runs():
     assert _probe(first="started") == ("False", "True")
+
+
+CPU_PROBE = """
+import os, sys
+from rvggt_jax.ops import xla_cpu
+import jax
+set_it = xla_cpu.use_cpu_without_accelerator(tuple(sys.argv[1:]))
+print(set_it, os.environ.get("JAX_PLATFORMS"), jax.devices()[0].platform)
+"""
+
+
+@pytest.mark.parametrize("case", ["no accelerator", "accelerator node", "user's choice"])
+def test_cpu_backend_on_a_host_without_accelerators(tmp_path, case):
+    """`use_cpu_without_accelerator` (the `rvggt` command calls it first): on a host without
+    a GPU's or TPU's device node JAX runs on its CPU backend without initialising the
+    installed accelerator plugins (the `[plan]` extra's CUDA and TPU plugins print
+    tracebacks when their device is absent); with a device node, or JAX_PLATFORMS set by
+    the user, nothing changes. Fresh interpreters: JAX reads the setting once."""
+    node = tmp_path / "nvidiactl"
+    node.write_text("")
+    nodes = {"no accelerator": [str(tmp_path / "absent")], "accelerator node": [str(node)],
+             "user's choice": [str(tmp_path / "absent")]}[case]
+    env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+    env["PYTHONPATH"] = str(ROOT)
+    if case == "user's choice":
+        env["JAX_PLATFORMS"] = "cpu"
+    r = subprocess.run([sys.executable, "-c", CPU_PROBE, *nodes], capture_output=True, text=True, env=env,
+                       cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = r.stdout.split()
+    if case == "no accelerator":
+        assert got == ["True", "cpu", "cpu"]
+        assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    elif case == "accelerator node":
+        assert got[:2] == ["False", "None"]
+    else:
+        assert got == ["False", "cpu", "cpu"]
