@@ -11,8 +11,9 @@ Q, K or V), the keys (`kept_keys`: all merged rows, or the K/V-downsampled slots
 the authors' duplicated protected dst) and the attention (`attend`: one device, or
 around the ring); the unmerge inside the block. With `duplicate_protected`, the
 protected tokens' own (un-merged) queries attend too, and each protected dst token takes
-its own row, as the authors' unmerge gives it (`protected_queries`, `unmerged_rows`). Heads attend independently, so the
-groups change no value; they bound the float32 sums and merged rows alive at once.
+its own row, as the authors' unmerge gives it (`protected_queries`, `own_rows`). Heads
+attend independently, so the groups change no value; they bound the float32 sums and
+merged rows alive at once.
 
 Split over devices, the merged rows are split in `rows` per device (a padding group at
 N_m collects the padding frames' tokens): each device projects its own tokens, the group
