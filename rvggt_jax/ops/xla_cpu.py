@@ -78,9 +78,9 @@ def applied() -> bool:
     return _applied
 
 
-# Device nodes of the accelerators JAX's plugins drive on Linux: NVIDIA GPUs, AMD GPUs
-# (ROCm), TPUs (/dev/accel*, or VFIO on some TPU VMs).
-ACCELERATOR_NODES = ("/dev/nvidiactl", "/dev/kfd", "/dev/accel0", "/dev/vfio")
+# Device nodes of the accelerators JAX's plugins drive on Linux: NVIDIA GPUs (WSL2: the
+# /dev/dxg paravirtual GPU), AMD GPUs (ROCm), TPUs (/dev/accel*, or VFIO on some TPU VMs).
+ACCELERATOR_NODES = ("/dev/nvidiactl", "/dev/dxg", "/dev/kfd", "/dev/accel0", "/dev/vfio")
 
 
 def use_cpu_without_accelerator(nodes: tuple[str, ...] = ACCELERATOR_NODES) -> bool:
