@@ -66,11 +66,9 @@ def use_host_compilers() -> None:
     """Deviceless compiles need no device client: JAX on the CPU unless the user chose
     (JAX_PLATFORMS), and libtpu quiet and shareable (it compiles only). Before JAX's
     backends start; `import rvggt_jax` never does this."""
-    if not os.environ.get("JAX_PLATFORMS"):
-        os.environ["JAX_PLATFORMS"] = "cpu"
-        import jax
+    from rvggt_jax.ops.xla_cpu import use_cpu_backend
 
-        jax.config.update("jax_platforms", "cpu")
+    use_cpu_backend()
     os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")
     os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
 

@@ -339,6 +339,12 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
     return Match(group, sizes, unm_pos.astype(jnp.int32))
 
 
+def mean_divisor(sizes: jax.Array) -> jax.Array:
+    """What a group's sum is divided by for its mean: its size, 1 for an empty row (its
+    sums are 0: its mean 0; it is no key and nobody's group)."""
+    return jnp.maximum(sizes, 1.0)
+
+
 def merge(x: jax.Array, match: Match, n_query: int) -> jax.Array:
     """x [B, N, F] -> group means [B, N_m, F] in x's dtype, summed in float32."""
     return merge_map(lambda xc: (xc,), (x,), match, n_query, x.shape[-1] * 4)[0]
@@ -379,9 +385,7 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
     else:
         sums = chunks.fold_tokens(lambda acc, start, size, *c: add(acc, *c), sums, (group, *inputs), n, 1, rows)
     sums = tuple(a.reshape((b, n_query) + a.shape[1:]) for a in sums)
-    sizes = match.sizes
-    # (an empty row's sums are 0: its mean 0, no key and nobody's group)
-    sizes = jnp.maximum(sizes, 1.0)
+    sizes = mean_divisor(match.sizes)
     means = materialized(tuple((a / sizes.reshape(sizes.shape + (1,) * (a.ndim - 2))).astype(o.dtype)
                                for a, o in zip(sums, spec)))
     return (x0, *means) if owned else means

@@ -187,7 +187,7 @@ def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Mat
                                                 bytes_per_row=b * c * 4 * 2 + c * 4, dep=after)
         sums = shards.ring_sum_scatter(
             lambda block, acc: merge_lib.block_sums(vals, share.group - block * share.rows, share.rows, into=acc))
-        sizes = jnp.maximum(share.sizes, 1.0)[..., None, None]  # (empty rows: 0 / 1)
+        sizes = merge_lib.mean_divisor(share.sizes)[..., None, None]
         return xs, merge_lib.materialized((sums / sizes).astype(vals.dtype))
 
     x, qm = means(x, "q", after)  # [B, rows, heads, D]: this device's merged rows

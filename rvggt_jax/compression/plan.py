@@ -4,9 +4,10 @@ derived from (configuration, layer, frames, grid) alone. The block and the cost 
 
 Query layout of a merging layer: [dst (N_dst, static order) ; unmerged src (U,
 data-dependent)], N_m = N_dst + U = N - r; under saliency protection up to r_max - r of
-the U rows are empty (their src merged after all: the authors' count, `r_max`). K/V slots: the dst kept for static reasons
-(`kv_fixed`, static indices), then `n_dyn` slots compacted from the data-dependent
-candidates (unmerged src on the sub-grid; Psi-protected tokens in the paper variant),
+the U rows are empty (their src merged after all: the authors' count, `r_max`). K/V
+slots: the dst kept for static reasons (`kv_fixed`, static indices), then `n_dyn` slots
+compacted from the data-dependent candidates (unmerged src on the sub-grid;
+Psi-protected tokens in the paper variant),
 then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
 default; a slot whose protected token is a src stays empty); with them, `n_dup` query
 rows after the N_m merged ones (every protected token's own query).

@@ -93,8 +93,15 @@ def use_cpu_without_accelerator(nodes: tuple[str, ...] = ACCELERATOR_NODES) -> b
         return False
     if any(os.path.exists(n) for n in nodes):
         return False
+    return use_cpu_backend()
+
+
+def use_cpu_backend() -> bool:
+    """JAX on its CPU backend (JAX_PLATFORMS=cpu) unless the user chose platforms (then
+    nothing changes; returns whether it set it). Before JAX's backends start."""
+    if os.environ.get("JAX_PLATFORMS"):
+        return False
     os.environ["JAX_PLATFORMS"] = "cpu"
     if "jax" in sys.modules:  # (JAX read the environment when it was imported)
         sys.modules["jax"].config.update("jax_platforms", "cpu")
     return True
-
