@@ -282,9 +282,13 @@ def select_best(score: jax.Array, r: int) -> tuple[jax.Array, jax.Array, jax.Arr
 
 
 def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: LayerPlan, chunk: int, dtype=None,
-                  transform=None, shards: FrameShards | None = None) -> Match:
+                  transform=None, shards: FrameShards | None = None, protected_pos: jax.Array | None = None
+                  ) -> Match:
     """metric [B, N, C] (similarity features), protected_src [B, N_src] bool or None ->
-    the `Match` of this layer's plan (its partition: `plan.partition`). The unit rows are
+    the `Match` of this layer's plan (its partition: `plan.partition`). With
+    `plan.protected_rows`, row N_dst + j is the own row of protected token j of
+    protected_pos [B, U] (a protected dst's has no member: the block writes its own q, k,
+    v there, `merged_layer.own_qkv`). The unit rows are
     normalised in float32 and stored in `dtype` (default: the metric's) block by block;
     the cosine similarities accumulate in float32 (`best_match`). Split over devices
     (`shards`): metric holds this device's tokens; the match is sequence-wide, the same
@@ -299,16 +303,19 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
         score, arg = score[:, 0], arg[:, 0]  # [B, N_src], arg indexes dst_pos
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
-        merged, rank, unmerged = select_best(score, r)
-        if plan.r_max > r:
-            # the authors' count: every unprotected src among the r_max best merges, as many
-            # more than the static r as there are protected dst; the extra ones keep their
-            # row of the static layout, empty (size 0)
-            merged = select_best(score, plan.r_max)[0]
-            if protected_src is not None:
-                merged = merged & ~protected_src
-        group_src = jnp.where(merged, arg, n_dst + rank)
-        unm_pos = jnp.take(jnp.asarray(part.src_pos, jnp.int32), unmerged, mode="clip")
+        if plan.protected_rows:
+            merged, group_src, unm_pos = _protected_rows(arg, protected_src, protected_pos, plan)
+        else:
+            merged, rank, unmerged = select_best(score, r)
+            if plan.r_max > r:
+                # the authors' count: every unprotected src among the r_max best merges, as
+                # many more than the static r as there are protected dst; the extra ones keep
+                # their row of the static layout, empty (size 0)
+                merged = select_best(score, plan.r_max)[0]
+                if protected_src is not None:
+                    merged = merged & ~protected_src
+            group_src = jnp.where(merged, arg, n_dst + rank)
+            unm_pos = jnp.take(jnp.asarray(part.src_pos, jnp.int32), unmerged, mode="clip")
     else:
         s1, n_src_f = part.src_pos_f.shape
         r_f = plan.r_frame
@@ -333,10 +340,24 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
     counts = jax.vmap(lambda g, w: jax.ops.segment_sum(w, g, num_segments=n_dst + 1))(
         jnp.where(merged, group_src, n_dst), merged.astype(jnp.float32))[:, :n_dst]
     unm_sizes = jnp.ones((b, U), jnp.float32)
-    if plan.r_max > r:  # an unmerged row whose src merged after all is empty
+    if plan.r_max > r and not plan.protected_rows:  # an unmerged row whose src merged after all is empty
         unm_sizes = 1.0 - jnp.take_along_axis(merged, unmerged, axis=1, mode="promise_in_bounds").astype(jnp.float32)
     sizes = jnp.concatenate([1.0 + counts, unm_sizes], axis=1)
     return Match(group, sizes, unm_pos.astype(jnp.int32))
+
+
+def _protected_rows(arg: jax.Array, protected_src: jax.Array, protected_pos: jax.Array, plan: LayerPlan):
+    """(merged [B, N_src], group_src [B, N_src], unm_pos [B, U]) when every unprotected
+    src merges into its best dst (arg [B, N_src]) and the U rows are the protected
+    tokens' own rows in protected_pos [B, U] order: a protected src's group is its row."""
+    b, u = protected_pos.shape
+    if u != plan.n_unm:
+        raise ValueError(f"global block {plan.layer}: its U = {plan.n_unm} rows are the protected tokens' own "
+                         f"rows, but {u} tokens are protected")
+    row_of = jnp.full((b, plan.tokens), -1, jnp.int32).at[jnp.arange(b)[:, None], protected_pos].set(
+        jnp.broadcast_to(plan.n_dst + jnp.arange(u, dtype=jnp.int32), (b, u)), mode="drop")
+    own_src = jnp.take(row_of, plan.partition.src_pos, axis=1, mode="clip")
+    return ~protected_src, jnp.where(protected_src, own_src, arg), protected_pos
 
 
 def mean_divisor(sizes: jax.Array) -> jax.Array:

@@ -11,7 +11,9 @@ Q, K or V), the keys (`kept_keys`: all merged rows, or the K/V-downsampled slots
 the authors' duplicated protected dst) and the attention (`attend`: one device, or
 around the ring); the unmerge inside the block. With `duplicate_protected`, the
 protected tokens' own (un-merged) queries attend too, and each protected dst token takes
-its own row, as the authors' unmerge gives it (`protected_queries`, `own_rows`). Heads
+its own row, as the authors' unmerge gives it (`protected_queries`, `own_rows`): in
+`n_dup` rows after the merged ones, or, when the plan says `protected_rows`, in the U
+unmerged rows, which are then the protected tokens' own (`own_qkv`). Heads
 attend independently, so the groups change no value; they bound the float32 sums and
 merged rows alive at once.
 
@@ -79,6 +81,8 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     def group_attention(x, p_heads, heads, after):
         """(x, attention output [B, rows, heads, D]) of one group of heads."""
         x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, heads, after)
+        if plan.protected_rows:
+            qm, km, vm = own_qkv(p_heads, x, pos, (qm, km, vm), share, plan, config, state, heads)
         keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, heads)
         if plan.n_dup:
             qm = jnp.concatenate([qm, protected_queries(p_heads, x, pos, plan, config, state, heads)], axis=1)
@@ -110,7 +114,10 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     proj = p_block["attn"]["proj"]
     out = chunks.map_tokens(lambda oc: layers.linear(proj, oc), (out.reshape(b, rows, c),),
                             bytes_per_row=b * c * 4 * 4)
-    return unmerge_block(p_block, x, out, share, config, state.shards, own_rows(plan, x, state)), state
+    own = own_rows(plan, x, state)
+    if plan.protected_rows:  # a protected dst takes its own row among the U rows
+        share, own = share._replace(group=jnp.where(own >= 0, plan.n_dst + own, share.group)), None
+    return unmerge_block(p_block, x, out, share, config, state.shards, own), state
 
 
 def head_groups(num_heads: int, groups: int) -> tuple[range, ...]:
@@ -146,7 +153,7 @@ def layer_match(p_block: Params, x: jax.Array, plan: LayerPlan, config, state: S
     protected = state.protected
     protected_src = None if protected is None else jnp.take(protected, plan.partition.src_pos, axis=1, mode="clip")
     match = merge_lib.compute_match(x, protected_src, plan, config.compression.match_chunk, dtype, norm1,
-                                    state.shards)
+                                    state.shards, state.protected_pos)
     if plan.match_key is not None:
         state = state.with_match(plan.match_key, match)
     return match, state
@@ -263,6 +270,21 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
     return Keys(kk, vv, g, valid, dup)
 
 
+def own_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, merged: tuple, share: MergedRows,
+            plan: LayerPlan, config, state: State, heads: int) -> tuple[jax.Array, ...]:
+    """`protected_rows`: the merged q, k, v [B, rows, heads, D] of this device's share with
+    the U rows (N_dst + j) set to protected token j's own q, k, v (norm1, projection,
+    qk-norm and RoPE of its row alone). A protected src's row is its own mean already;
+    a protected dst's row has no member (it stays in its dst group) until written here."""
+    idx = state.protected_pos  # [B, U]
+    rows = state.shards.take_rows(x, idx, plan.per_frame)
+    own = layers.block_qkv(p_block, rows, heads, pos.frame_rows(idx % plan.per_frame), dtype=config.compute_dtype)
+    b, u = idx.shape
+    rel = plan.n_dst + jnp.arange(u, dtype=jnp.int32) - share.first  # their rows in this device's share
+    rel = jnp.where((rel >= 0) & (rel < share.rows), rel, share.rows)  # (outside: dropped)
+    return tuple(m.at[:, rel].set(o.astype(m.dtype), mode="drop") for m, o in zip(merged, own))
+
+
 def protected_queries(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerPlan, config,
                       state: State, heads: int) -> jax.Array:
     """q [B, n_dup, heads, D] of the protected tokens, un-merged (their own rows, on every
@@ -276,12 +298,13 @@ def protected_queries(p_block: Params, x: jax.Array, pos: layers.RopeTables, pla
 
 
 def own_rows(plan: LayerPlan, x: jax.Array, state: State) -> jax.Array | None:
-    """With `n_dup`: [B, N_local] int32, for each of this device's tokens the index of its
-    own row among the protected tokens' rows when it is a protected dst, else -1. The
+    """With `n_dup` or `protected_rows`: [B, N_local] int32, for each of this device's
+    tokens the index of its own row among the protected tokens' rows when it is a
+    protected dst, else -1. The
     authors' unmerge writes the protected tokens' rows last, so a protected dst takes the
     output of its own query, not its group's (the src merged into it keep the group's).
     A protected src is never merged: its group's row is its own already."""
-    if not plan.n_dup:
+    if not (plan.n_dup or plan.protected_rows):
         return None
     b, n = x.shape[:2]
     idx = state.protected_pos  # [B, n_dup] global positions

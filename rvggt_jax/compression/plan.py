@@ -10,7 +10,12 @@ compacted from the data-dependent candidates (unmerged src on the sub-grid;
 Psi-protected tokens in the paper variant),
 then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
 default; a slot whose protected token is a src stays empty); with them, `n_dup` query
-rows after the N_m merged ones (every protected token's own query).
+rows after the N_m merged ones (every protected token's own query). When every
+unprotected src merges (the authors' count reaching all src, U equal to the protected
+count), the U rows are the protected tokens' own rows instead (`protected_rows`): a
+protected src's row is its own already, and a protected dst's own row fills one of the
+rows its group's extra merges emptied, so the duplicates need no rows or slots of their
+own.
 Slots left empty are masked through the size column (g = 0 -> a large negative finite
 logit).
 """
@@ -69,6 +74,12 @@ class LayerPlan:
     # (sequence scope) the authors merge min(r_max, unprotected src), data-dependent and at
     # least r: the extra ones leave their rows of the static layout empty (`Match.sizes` 0).
     r_max: int = 0
+    # The U unmerged rows are the protected tokens' own rows, in `State.protected_pos`
+    # order (duplicate_protected, saliency protection, every unprotected src merging and
+    # U equal to the protected count): n_dup is then 0. Same queries and keys as the
+    # layout with n_dup extra rows, minus its copies of the protected src rows and its
+    # empty rows.
+    protected_rows: bool = False
     # The static index sets of a compressed layer (None for DENSE and FRAME), computed with
     # the plan so that the block reads them from it (not compared: they follow from the
     # fields above and the configuration).
@@ -122,6 +133,14 @@ def _expected_duplicates(comp: CompressionConfig, part: Partition, keep: np.ndar
     if not later_patches.size:
         return 0.0
     return _protected_count(comp, geom) * float(ok[later_patches].mean())
+
+
+def _expected_protected_kept(keep: np.ndarray, geom: Geometry, count: int) -> float:
+    """Expected saliency-protected tokens on the K/V grid `keep` [N]: the top patches of
+    frames >= 1 taken to fall anywhere in their frame."""
+    pos = np.arange(geom.per_frame, geom.tokens)
+    later_patches = pos[pos % geom.per_frame >= geom.num_special]
+    return count * float(keep[later_patches].mean()) if later_patches.size else 0.0
 
 
 @functools.lru_cache(maxsize=4096)
@@ -179,7 +198,17 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
     else:
         pairs = (geom.frames - 1) * part.src_pos_f.shape[1] * part.dst_rank_f.shape[1]
 
-    n_dup = p_max if comp.duplicate_protected else 0
+    # a duplicate slot is empty when its protected token is a src (or off the K/V grid); an
+    # unmerged row when its src merged beyond the static r
+    r_max = r
+    if comp.match_scope == "sequence" and comp.protect == "saliency":
+        r_max = max(r, min(int(geom.tokens * comp.layer_merge_ratio(layer)), n_src))
+    # every unprotected src merges and the U rows number the protected tokens: the rows
+    # the extra merges empty are exactly as many as the protected dst (their own rows)
+    protected_rows = (comp.duplicate_protected and r_max == n_src and U == p_max > 0
+                      and comp.match_scope == "sequence" and comp.protect == "saliency"
+                      and not kv_keeps_protected)
+    n_dup = p_max if comp.duplicate_protected and not protected_rows else 0
     if tile == (1, 1):
         kv_mode, n_fixed, n_dyn, exp_dyn = "all", n_query, 0, 0.0
         dup_masked = False
@@ -189,6 +218,9 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
         e_src = int(keep[part.src_pos].sum())
         n_dyn = min(U, e_src)
         exp_dyn = U * e_src / max(n_src, 1)
+        if protected_rows:  # the rows' tokens are dst or src: any of them may be on the grid
+            n_dyn = U
+            exp_dyn = _expected_protected_kept(keep, geom, p_max)
         if kv_keeps_protected:
             pool = U + (n_dst - n_fixed)
             n_dyn = min(pool, n_dyn + p_max)
@@ -197,17 +229,13 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
     exp_dup = 0.0
     if n_dup:
         exp_dup = _expected_duplicates(comp, part, keep if dup_masked else None, geom)
-    # a duplicate slot is empty when its protected token is a src (or off the K/V grid); an
-    # unmerged row when its src merged beyond the static r
-    r_max = r
-    if comp.match_scope == "sequence" and comp.protect == "saliency":
-        r_max = max(r, min(int(geom.tokens * comp.layer_merge_ratio(layer)), n_src))
     masked = n_dyn > 0 or n_dup > 0 or r_max > r
     return LayerPlan(kind=LayerKind.MERGE, r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query,
                      kv_mode=kv_mode, n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
                      expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
                      size_column=masked or comp.size_bias,
                      match=match, match_key=key, r_frame=r_f, match_pairs=pairs, r_max=r_max,
+                     protected_rows=protected_rows,
                      fixed_kv=_ro(np.flatnonzero(keep[part.dst_pos])) if kv_mode == "select" else None,
                      **index, **base)
 

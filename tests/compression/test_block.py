@@ -11,7 +11,7 @@ import pytest
 
 from tests.helpers import rel_err
 from rvggt_jax.model import layers
-from rvggt_jax.compression import PRESETS, Geometry, global_block, init_state, layer_plan
+from rvggt_jax.compression import PRESETS, Geometry, global_block, init_state, layer_plan, merge
 from rvggt_jax.compression.partition import kv_static_keep, partition, stride_protected
 from tests.helpers.compression_reference import (
     global_positions,
@@ -196,6 +196,53 @@ def test_duplicate_protected_duplicates_only_protected_dst(block_params):
         every = reference_block(block_params, np.asarray(x[bi]), pos, HEADS, cfg.rope_freq, parent, None,
                                 size_bias=False, extra_pos=np.arange(0, 26, 2))
         assert rel_err(out[bi], every) > 1e-3
+
+
+def test_protected_rows_hold_every_protected_token_once(block_params):
+    """`duplicate_protected` where every unprotected src merges (regime's bands 0 and 2):
+    the U unmerged rows are the protected tokens' own rows, in `protected_pos` order, and
+    no duplicate rows or slots are added. The block's values are the float64 reference's
+    (`test_block_equals_float64_reference`, regime layers 0 and 10 with duplicates)."""
+    cfg = BASE.with_compression("regime", duplicate_protected=True)
+    cc = cfg.compression
+    geom = Geometry(S, H, W, NS)
+    plan = layer_plan(cc, 0, geom)
+    p_max = init_state(cc, _data(1)[1], geom).protected_pos.shape[1]  # (S - 1) frames' top patches
+    assert plan.protected_rows and plan.n_dup == 0 and plan.r_max == plan.n_src
+    assert plan.n_unm == p_max and plan.n_query == plan.n_dst + p_max
+    assert plan.n_kv == plan.n_fixed + plan.n_dyn and plan.n_dyn == plan.n_unm
+    # without duplicates, or with the paper's K/V protection, the layout stays
+    assert not layer_plan(BASE.with_compression("regime").compression, 0, geom).protected_rows
+    paper = layer_plan(BASE.with_compression("regime_paper", duplicate_protected=True).compression, 0, geom)
+    assert not paper.protected_rows and paper.n_dup == p_max
+    # 64 frames of 12 x 16: bands 0 and 2 merge every unprotected src, band 1 (rho 0.5) does not
+    big = Geometry(64, 12, 16, NS)
+    rows = {layer: layer_plan(cc, layer, big) for layer in (0, 10, 14, 18)}
+    assert [rows[k].protected_rows for k in (0, 10, 14, 18)] == [True, False, False, True]
+    assert (rows[0].n_query, rows[0].n_kv, rows[0].n_dup) == (4733, 2995, 0)
+    assert (rows[10].n_query + rows[10].n_dup, rows[10].n_dup) == (6304 + 1197, 1197)
+
+    x, sal = _data(3)
+    state = init_state(cc, sal, geom)
+    protected_src = jnp.take(state.protected, plan.partition.src_pos, axis=1)
+    xn = layers.layer_norm(block_params["norm1"], x)
+    match = jax.jit(lambda m, ps, pp: merge.compute_match(m, ps, plan, 0, protected_pos=pp))(
+        xn, protected_src, state.protected_pos)
+    part = plan.partition
+    for bi in range(x.shape[0]):
+        pp = np.asarray(state.protected_pos[bi])
+        np.testing.assert_array_equal(np.asarray(match.unm_pos[bi]), pp)
+        np.testing.assert_array_equal(np.asarray(match.sizes[bi, plan.n_dst:]), 1.0)
+        group = np.asarray(match.group[bi])
+        own = plan.n_dst + np.arange(pp.size)
+        src = ~part.is_dst[pp]
+        np.testing.assert_array_equal(group[pp[src]], own[src])  # a protected src is its own row
+        assert (group[pp[~src]] < plan.n_dst).all()  # a protected dst stays in its dst group
+        # every unprotected src merged into a dst; each dst row's size counts its members
+        unprotected_src = np.setdiff1d(part.src_pos, pp)
+        assert (group[unprotected_src] < plan.n_dst).all()
+        sizes = np.bincount(group[group < plan.n_dst], minlength=plan.n_dst)
+        np.testing.assert_array_equal(np.asarray(match.sizes[bi, :plan.n_dst]), sizes)
 
 
 def test_frame_layers_attend_within_each_frame(block_params):
