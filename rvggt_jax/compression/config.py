@@ -120,6 +120,13 @@ class CompressionConfig:
                          once, as the authors'; off: no duplicate), each protected
                          token's own query attending too, a protected dst taking its
                          output (the authors' unmerge writes those rows last).
+      duplicate_capacity the rows (queries and K/V slots) a layer gives the protected dst's
+                         own copies under saliency protection, as a multiple of their
+                         expected count (at most every protected token): which protected
+                         tokens are dst depends on the data, so a sequence with more
+                         protected dst than that runs the layer's attention with every
+                         protected token's row (a second branch of the layer, same
+                         values). Stride protection counts them exactly.
       dst_seed           seed of the fixed per-cell dst choice; -1 = top-left of every cell.
 
     K/V downsampling (axis 2)
@@ -159,6 +166,7 @@ class CompressionConfig:
     alpha: float = 0.1
     size_bias: bool = True
     duplicate_protected: bool = False
+    duplicate_capacity: float = 1.5
     dst_seed: int = 33
     kv_sigma: Any = (1.0, 1.0, 1.0)
     kv_bands: tuple[int, int] = (10, 14)
@@ -183,6 +191,8 @@ class CompressionConfig:
             raise ValueError(f"match_metric must be one of {MATCH_METRICS}; got {self.match_metric!r}")
         if not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"alpha must be in [0, 1]; got {self.alpha}")
+        if not self.duplicate_capacity >= 0.0:
+            raise ValueError(f"duplicate_capacity must be >= 0; got {self.duplicate_capacity}")
         if self.head_pad_multiple < 1:
             raise ValueError("head_pad_multiple must be >= 1")
         if not isinstance(self.merge_head_groups, int) or self.merge_head_groups < 1:

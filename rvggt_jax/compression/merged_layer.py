@@ -76,7 +76,7 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     slots, state = key_slots(plan, config, match, state)
     b, c = x.shape[0], x.shape[-1]
     groups = head_groups(config.num_heads, config.compression.merge_head_groups)
-    rows = share.rows + plan.n_dup  # the merged rows, then the protected tokens' own rows
+    rows = share.rows + plan.n_dup_all  # the merged rows, then the protected tokens' own rows
 
     def group_attention(x, p_heads, heads, after):
         """(x, attention output [B, rows, heads, D]) of one group of heads."""
@@ -84,8 +84,9 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
         if plan.protected_rows:
             qm, km, vm = own_qkv(p_heads, x, pos, (qm, km, vm), share, plan, config, state, heads)
         keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, heads)
-        if plan.n_dup:
+        if plan.n_dup_all:
             qm = jnp.concatenate([qm, protected_queries(p_heads, x, pos, plan, config, state, heads)], axis=1)
+            return x, attend_duplicates(qm, keys, plan, config, state)
         return x, attend(qm, keys, plan, config, state.shards)
 
     if len(groups) == 1:
@@ -226,8 +227,9 @@ def key_slots(plan: LayerPlan, config, match: Match, state: State) -> tuple[tupl
 def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Array, vm: jax.Array, match: Match,
               share: MergedRows, plan: LayerPlan, config, state: State, slots: tuple | None, heads: int) -> Keys:
     """The keys of the layer for the heads of km, vm [B, rows, heads, D]: every merged row
-    (`kv_mode` "all") or the kept slots (`key_slots`), and with `n_dup` the protected
-    dst once more, un-merged, size 1 (the authors' artefact). Over devices, the keys are
+    (`kv_mode` "all") or the kept slots (`key_slots`), and with `n_dup_all` the protected
+    dst once more, un-merged, size 1 (the authors' artefact; `n_dup_all` slots, dst first,
+    those of protected src masked). Over devices, the keys are
     this device's merged rows, those the layer does not keep masked out."""
     comp, shards = config.compression, state.shards
     ring = shards.sharded
@@ -251,7 +253,7 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
             g = jnp.take_along_axis(match.sizes, sel, axis=1, mode="promise_in_bounds")
 
     dup = None
-    if plan.n_dup:
+    if plan.n_dup_all:
         protected_pos = state.protected_pos
         dk, dv = rows_kv(p_block, x, protected_pos, pos, config, shards, plan.per_frame, heads)
         # only protected dst come twice: the authors drop protected src from both lists
@@ -287,7 +289,7 @@ def own_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, merged: tuple
 
 def protected_queries(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerPlan, config,
                       state: State, heads: int) -> jax.Array:
-    """q [B, n_dup, heads, D] of the protected tokens, un-merged (their own rows, on every
+    """q [B, n_dup_all, heads, D] of the protected tokens, un-merged (their own rows, on every
     device): the authors append every protected token once more to the sequence, so
     each is a query of its own."""
     idx = state.protected_pos
@@ -304,10 +306,10 @@ def own_rows(plan: LayerPlan, x: jax.Array, state: State) -> jax.Array | None:
     authors' unmerge writes the protected tokens' rows last, so a protected dst takes the
     output of its own query, not its group's (the src merged into it keep the group's).
     A protected src is never merged: its group's row is its own already."""
-    if not (plan.n_dup or plan.protected_rows):
+    if not (plan.n_dup_all or plan.protected_rows):
         return None
     b, n = x.shape[:2]
-    idx = state.protected_pos  # [B, n_dup] global positions
+    idx = state.protected_pos  # [B, n_dup_all] global positions, dst first
     rel = idx - state.shards.offset(plan.per_frame)
     is_dst = jnp.take(jnp.asarray(plan.partition.is_dst), idx, mode="clip")
     mine = is_dst & (rel >= 0) & (rel < n)
@@ -315,11 +317,38 @@ def own_rows(plan: LayerPlan, x: jax.Array, state: State) -> jax.Array | None:
     return jnp.full((b, n), -1, jnp.int32).at[jnp.arange(b)[:, None], jnp.where(mine, rel, n)].set(slot, mode="drop")
 
 
-def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards) -> jax.Array:
+def attend_duplicates(qm: jax.Array, keys: Keys, plan: LayerPlan, config, state: State) -> jax.Array:
+    """`attend` for a layer with the protected tokens' own rows: qm [B, rows + n_dup_all,
+    H, D], keys ending in their n_dup_all slots (dst first) -> [B, rows + n_dup_all, H, D].
+    On one device the rows and slots beyond n_dup are left out (their outputs 0: they are
+    protected src, whose own rows nobody reads, and whose slots are masked); under
+    saliency protection a sequence with more than n_dup protected dst takes every row
+    (`lax.cond`: the values do not depend on the branch). Over devices all of them."""
+    extra = plan.n_dup_all - plan.n_dup
+    if state.shards.sharded or not extra:
+        return attend(qm, keys, plan, config, state.shards, plan.n_dup_all)
+
+    def capped(qm, keys):
+        m = keys.k.shape[1] - extra
+        cut = Keys(keys.k[:, :m], keys.v[:, :m], keys.sizes[:, :m], keys.valid[:, :m], None)
+        out = attend(qm[:, :qm.shape[1] - extra], cut, plan, config, state.shards)
+        return jnp.pad(out, ((0, 0), (0, extra), (0, 0), (0, 0)))
+
+    if config.compression.protect == "stride":  # the protected dst are the first n_dup, statically
+        return capped(qm, keys)
+    is_dst = jnp.take(jnp.asarray(plan.partition.is_dst), state.protected_pos, mode="clip")
+    overflow = jnp.any(jnp.sum(is_dst, axis=1) > plan.n_dup)
+    return jax.lax.cond(overflow, lambda q, k: attend(q, k, plan, config, state.shards, plan.n_dup_all), capped,
+                        qm, keys)
+
+
+def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards, dup: int | None = None
+           ) -> jax.Array:
     """The merged queries [B, rows, H, D] (then, with `n_dup`, the protected tokens' own
-    queries [B, n_dup, H, D]) against the layer's keys, with the size bias log g (and the
-    invalid slots masked) -> [B, rows (+ n_dup), H, D]."""
+    queries [B, dup, H, D], dup defaulting to n_dup) against the layer's keys, with the
+    size bias log g (and the invalid slots masked) -> [B, rows (+ dup), H, D]."""
     comp = config.compression
+    dup = plan.n_dup if dup is None else dup
 
     def bias(g, valid, masked):
         if not plan.size_column and not masked:
@@ -336,16 +365,16 @@ def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShar
         return ring_attention(with_dependency(qm, keys.v), with_dependency(keys.k, keys.v), keys.v, log_g, shards,
                               extra)
     log_g = bias(keys.sizes, keys.valid, plan.masked) if plan.size_column else None
-    check_shapes(plan, comp, qm.shape[1] - plan.n_dup, keys.k, log_g)
+    check_shapes(plan, comp, qm.shape[1] - dup, keys.k, log_g, dup)
     return attention(qm, keys.k, keys.v, log_g)
 
 
 def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, config, shards: FrameShards,
                   own: jax.Array | None = None) -> jax.Array:
     """The block around the merged attention: its hook unmerges the projected merged rows
-    out [B, rows (+ n_dup), C], each token taking its group's row (over devices, the rows
-    travel around the ring), or with `own` ([B, N] from `own_rows`) a protected dst its
-    own row (the n_dup rows after the merged ones; every device holds them all)."""
+    out [B, rows (+ n_dup_all), C], each token taking its group's row (over devices, the
+    rows travel around the ring), or with `own` ([B, N] from `own_rows`) a protected dst
+    its own row (the n_dup_all rows after the merged ones; every device holds them all)."""
     dtype = config.compute_dtype
     group = share.group
     if not shards.sharded:

@@ -10,7 +10,10 @@ compacted from the data-dependent candidates (unmerged src on the sub-grid;
 Psi-protected tokens in the paper variant),
 then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
 default; a slot whose protected token is a src stays empty); with them, `n_dup` query
-rows after the N_m merged ones (every protected token's own query). When every
+rows after the N_m merged ones (the protected tokens' own queries, dst first: `n_dup`
+covers the protected dst, exactly under stride protection, `duplicate_capacity` times
+their expected count under saliency protection, where a sequence with more takes all
+`n_dup_all`). When every
 unprotected src merges (the authors' count reaching all src, U equal to the protected
 count), the U rows are the protected tokens' own rows instead (`protected_rows`): a
 protected src's row is its own already, and a protected dst's own row fills one of the
@@ -57,7 +60,8 @@ class LayerPlan:
     kv_mode: str  # "all" (every query token is a key) | "select"
     n_fixed: int  # static K/V slots (always filled)
     n_dyn: int  # data-dependent K/V slots (bound)
-    n_dup: int  # K/V slots for duplicated protected dst (a bound: a protected src leaves its slot empty)
+    n_dup: int  # query rows and K/V slots for the protected dst's own copies (a bound: the protected
+    # tokens come dst first, `State.protected_pos`; a slot beyond the protected dst stays empty)
     n_kv: int  # K/V slots in total
     expected_dyn: float  # expected filled dynamic slots (src survival independent of position)
     expected_dup: float  # expected filled duplicate slots
@@ -80,6 +84,10 @@ class LayerPlan:
     # layout with n_dup extra rows, minus its copies of the protected src rows and its
     # empty rows.
     protected_rows: bool = False
+    # Every protected token's own row (the duplicates' list, `protected_pos`); when more
+    # than n_dup of them are dst (saliency protection; `duplicate_capacity`), the layer
+    # attends with all n_dup_all. Rows of the output: N_m + n_dup_all.
+    n_dup_all: int = 0
     # The static index sets of a compressed layer (None for DENSE and FRAME), computed with
     # the plan so that the block reads them from it (not compared: they follow from the
     # fields above and the configuration).
@@ -208,7 +216,13 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
     protected_rows = (comp.duplicate_protected and r_max == n_src and U == p_max > 0
                       and comp.match_scope == "sequence" and comp.protect == "saliency"
                       and not kv_keeps_protected)
-    n_dup = p_max if comp.duplicate_protected and not protected_rows else 0
+    n_dup_all = p_max if comp.duplicate_protected and not protected_rows else 0
+    n_dup = n_dup_all
+    if n_dup_all and comp.protect == "stride":  # the protected dst are known
+        n_dup = int(part.is_dst[stride_protected(N, comp.alpha)].sum())
+    elif n_dup_all:
+        expected = _expected_duplicates(comp, part, None, geom)
+        n_dup = min(n_dup_all, 8 * math.ceil(comp.duplicate_capacity * expected / 8))
     if tile == (1, 1):
         kv_mode, n_fixed, n_dyn, exp_dyn = "all", n_query, 0, 0.0
         dup_masked = False
@@ -235,7 +249,7 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
                      expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
                      size_column=masked or comp.size_bias,
                      match=match, match_key=key, r_frame=r_f, match_pairs=pairs, r_max=r_max,
-                     protected_rows=protected_rows,
+                     protected_rows=protected_rows, n_dup_all=n_dup_all,
                      fixed_kv=_ro(np.flatnonzero(keep[part.dst_pos])) if kv_mode == "select" else None,
                      **index, **base)
 
@@ -247,11 +261,14 @@ def padded_head_dim(d: int, size_column: bool, multiple: int) -> int:
     return int(math.ceil((d + 1) / multiple) * multiple)
 
 
-def check_shapes(plan: LayerPlan, comp: CompressionConfig, queries: int, keys, log_g) -> None:
+def check_shapes(plan: LayerPlan, comp: CompressionConfig, queries: int, keys, log_g, dup: int | None = None
+                 ) -> None:
     """At trace time: the attention's queries, K/V slots (keys [B, M, H, D]) and folded head
-    dimension (log_g: the size bias, or None) are the plan's (what the cost model reads)."""
+    dimension (log_g: the size bias, or None) are the plan's (what the cost model reads);
+    `dup`: the duplicate slots attended (default n_dup; n_dup_all in the overflow branch)."""
     d = keys.shape[-1]
-    want = (plan.n_query, plan.n_kv, padded_head_dim(d, plan.size_column, comp.head_pad_multiple))
+    n_kv = plan.n_kv - plan.n_dup + (plan.n_dup if dup is None else dup)
+    want = (plan.n_query, n_kv, padded_head_dim(d, plan.size_column, comp.head_pad_multiple))
     got = (queries, keys.shape[1], padded_head_dim(d, log_g is not None, comp.head_pad_multiple))
     if got != want:
         raise AssertionError(f"global block {plan.layer}: (queries, K/V slots, head dim) {got} but the plan "

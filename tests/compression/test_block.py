@@ -177,7 +177,8 @@ def test_duplicate_protected_duplicates_only_protected_dst(block_params):
     plan = layer_plan(cc, 0, Geometry(s, h, w, NS))
     # r = min(int(0.9 * 26), 6 src - 2 protected src) = 4: 19, 21, 23, 25 merge, 22 and 24 stay
     assert (plan.r, plan.n_unm, plan.n_query) == (4, 2, 22)
-    assert plan.n_dup == 13 and plan.expected_dup == duplicated.size and plan.masked
+    # 13 protected, 11 of them dst: the rows and slots of their copies (stride: known statically)
+    assert plan.n_dup_all == 13 and plan.n_dup == 11 == plan.expected_dup == duplicated.size and plan.masked
 
     x, sal = _data(7, s=s, h=h, w=w)  # stride protection ignores the saliency (its batch size only)
     pos = global_positions(s, h, w)
@@ -214,13 +215,14 @@ def test_protected_rows_hold_every_protected_token_once(block_params):
     # without duplicates, or with the paper's K/V protection, the layout stays
     assert not layer_plan(BASE.with_compression("regime").compression, 0, geom).protected_rows
     paper = layer_plan(BASE.with_compression("regime_paper", duplicate_protected=True).compression, 0, geom)
-    assert not paper.protected_rows and paper.n_dup == p_max
+    assert not paper.protected_rows and paper.n_dup_all == p_max
     # 64 frames of 12 x 16: bands 0 and 2 merge every unprotected src, band 1 (rho 0.5) does not
     big = Geometry(64, 12, 16, NS)
     rows = {layer: layer_plan(cc, layer, big) for layer in (0, 10, 14, 18)}
     assert [rows[k].protected_rows for k in (0, 10, 14, 18)] == [True, False, False, True]
     assert (rows[0].n_query, rows[0].n_kv, rows[0].n_dup) == (4733, 2995, 0)
-    assert (rows[10].n_query + rows[10].n_dup, rows[10].n_dup) == (6304 + 1197, 1197)
+    # band 1: every protected token's copy listed, rows for 1.5x the expected protected dst
+    assert (rows[10].n_query, rows[10].n_dup_all) == (6304, 1197) and 0 < rows[10].n_dup < 1197
 
     x, sal = _data(3)
     state = init_state(cc, sal, geom)
@@ -243,6 +245,43 @@ def test_protected_rows_hold_every_protected_token_once(block_params):
         assert (group[unprotected_src] < plan.n_dst).all()
         sizes = np.bincount(group[group < plan.n_dst], minlength=plan.n_dst)
         np.testing.assert_array_equal(np.asarray(match.sizes[bi, :plan.n_dst]), sizes)
+
+
+def test_duplicate_capacity_branches_give_the_same_block(block_params):
+    """Saliency protection with duplicates and no `protected_rows` (the paper variant's K/V
+    protection): the copies get `n_dup` rows (`duplicate_capacity` times their expected
+    count) and a sequence with more protected dst takes all `n_dup_all` (`lax.cond`).
+    Capacity 0 (always the full branch), one that holds this data's protected dst (the
+    short branch) and one of every protected token (no branch) give the same block; the
+    float64 reference checks the default (`test_block_equals_float64_reference`)."""
+    geom = Geometry(S, H, W, NS)
+    x, sal = _data(1)
+    pos = global_positions(S, H, W)
+    base = BASE.with_compression("regime_paper", duplicate_protected=True)
+    state = init_state(base.compression, sal, geom)
+    part = partition(geom, base.compression.dst_seed)
+    is_dst = part.is_dst[np.asarray(state.protected_pos)]  # [B, P]
+    p_d = int(is_dst.sum(axis=1).max())
+    # dst first: the rows beyond the protected dst are src
+    assert all(np.array_equal(row, np.sort(row)[::-1]) for row in is_dst)
+    outs, plans = {}, {}
+    for cap in (0.0, 1e3):
+        cfg = dataclasses.replace(base, compression=dataclasses.replace(base.compression, duplicate_capacity=cap))
+        plans[cap] = layer_plan(cfg.compression, 0, geom)
+        outs[cap] = jax.jit(lambda x, s, cfg=cfg: global_block(block_params, x, pos, 0, cfg,
+                                                             init_state(cfg.compression, s, geom))[0])(x, sal)
+    p = plans[0.0].n_dup_all
+    assert plans[0.0].n_dup == 0 < p_d and plans[1e3].n_dup == p
+    for cap in np.linspace(0.1, 4.0, 40):  # a capacity whose rows hold this data's protected dst, fewer than all
+        cc = dataclasses.replace(base.compression, duplicate_capacity=float(cap))
+        if p_d <= layer_plan(cc, 0, geom).n_dup < p:
+            break
+    else:
+        pytest.skip("no capacity between this data's protected dst and all protected tokens")
+    cfg = dataclasses.replace(base, compression=cc)
+    outs["short"] = jax.jit(lambda x, s: global_block(block_params, x, pos, 0, cfg, init_state(cc, s, geom))[0])(x, sal)
+    assert rel_err(outs[0.0], outs[1e3]) <= 1e-6 and rel_err(outs["short"], outs[1e3]) <= 1e-6
+    assert cost_report(cfg, S, H * 14, W * 14)["layers"][0]["queries"] == plans[1e3].n_query + layer_plan(cc, 0, geom).n_dup
 
 
 def test_frame_layers_attend_within_each_frame(block_params):
