@@ -13,12 +13,11 @@ default; a slot whose protected token is a src stays empty); with them, `n_dup` 
 rows after the N_m merged ones (the protected tokens' own queries, dst first: `n_dup`
 covers the protected dst, exactly under stride protection, `duplicate_capacity` times
 their expected count under saliency protection, where a sequence with more takes all
-`n_dup_all`). When every
-unprotected src merges (the authors' count reaching all src, U equal to the protected
-count), the U rows are the protected tokens' own rows instead (`protected_rows`): a
-protected src's row is its own already, and a protected dst's own row fills one of the
-rows its group's extra merges emptied, so the duplicates need no rows or slots of their
-own.
+`n_dup_all`). When every unprotected src merges (the authors' count reaching all src, U
+equal to the protected count), the U rows are the protected tokens' own rows instead
+(`protected_rows`): a protected src's row is its own already, and a protected dst's own
+row fills one of the rows its group's extra merges emptied, so the duplicates need no
+rows or slots of their own.
 Slots left empty are masked through the size column (g = 0 -> a large negative finite
 logit).
 """
@@ -135,19 +134,14 @@ def _expected_duplicates(comp: CompressionConfig, part: Partition, keep: np.ndar
     ok = part.is_dst if keep is None else part.is_dst & keep
     if comp.protect == "stride":
         return float(ok[stride_protected(geom.tokens, comp.alpha)].sum())
-    L = geom.per_frame
-    pos = np.arange(L, geom.tokens)
-    later_patches = pos[pos % L >= geom.num_special]  # where saliency protection can fall
-    if not later_patches.size:
-        return 0.0
-    return _protected_count(comp, geom) * float(ok[later_patches].mean())
+    return _expected_protected_kept(ok, geom, _protected_count(comp, geom))
 
 
 def _expected_protected_kept(keep: np.ndarray, geom: Geometry, count: int) -> float:
-    """Expected saliency-protected tokens on the K/V grid `keep` [N]: the top patches of
-    frames >= 1 taken to fall anywhere in their frame."""
+    """Expected saliency-protected tokens where `keep` [N] is True: the top patches of
+    frames >= 1 (`count` of them) taken to fall anywhere in their frame."""
     pos = np.arange(geom.per_frame, geom.tokens)
-    later_patches = pos[pos % geom.per_frame >= geom.num_special]
+    later_patches = pos[pos % geom.per_frame >= geom.num_special]  # where saliency protection can fall
     return count * float(keep[later_patches].mean()) if later_patches.size else 0.0
 
 
