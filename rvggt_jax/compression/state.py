@@ -16,7 +16,7 @@ import numpy as np
 
 from rvggt_jax.compression.config import CompressionConfig
 from rvggt_jax.compression.kv import KVSlots
-from rvggt_jax.compression.merge import Match
+from rvggt_jax.compression.merge import Match, compact
 from rvggt_jax.compression.partition import Geometry, partition, saliency_protect_count, stride_protected
 from rvggt_jax.ops.shards import FrameShards
 
@@ -72,9 +72,6 @@ def init_state(comp: CompressionConfig, saliency: jax.Array | None, geom: Geomet
 def dst_first(pos: jax.Array, is_dst: np.ndarray) -> jax.Array:
     """Positions pos [B, P] reordered, per row, dst first (each part in its order): the
     duplicated protected tokens' rows and slots beyond the layers' `n_dup` are then
-    protected src (never a duplicate's row). A stable partition, no sort."""
-    d = jnp.take(jnp.asarray(is_dst), pos, mode="clip")
-    n_d = jnp.sum(d, axis=1, keepdims=True, dtype=jnp.int32)
-    place = jnp.where(d, jnp.cumsum(d, axis=1, dtype=jnp.int32) - 1, n_d + jnp.cumsum(~d, axis=1, dtype=jnp.int32) - 1)
-    b = pos.shape[0]
-    return jnp.zeros_like(pos).at[jnp.arange(b)[:, None], place].set(pos, unique_indices=True)
+    protected src (never a duplicate's row). `merge.compact`'s stable partition, no sort."""
+    order, _ = compact(jnp.take(jnp.asarray(is_dst), pos, mode="clip"), pos.shape[1])
+    return jnp.take_along_axis(pos, order, axis=1, mode="promise_in_bounds")
