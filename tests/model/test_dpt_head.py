@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rvggt_jax import init_params
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model.heads import dpt
+from rvggt_jax.model.heads import dpt, resize
 from tests.helpers import TINY, rel_err
 from tests.helpers.heads_params import load_head_params, load_io
 
@@ -122,3 +125,53 @@ def test_1x1_conv_as_matmul_equals_convolution(with_bias):
     if with_bias:
         ref = ref + p["bias"]
     np.testing.assert_allclose(np.asarray(dpt.conv2d(p, x)), np.asarray(ref), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("channels, size", [((6, 4), (9, 11)), ((4, 4), (1, 7)), ((5, 3), (5, 6)), ((3, 5), (9, 11))])
+@pytest.mark.parametrize("with_pos", [True, False])
+def test_resized_conv3x3_equals_resize_then_conv(channels, size, with_pos):
+    """The head's last upsampling and output_conv2's 3x3 conv as one map, against resize
+    + positional map + conv: convolved at the low resolution when C >= O (an upsampling,
+    a single output row, a map of the input's own size), as written when C < O."""
+    c, o = channels
+    rng = np.random.default_rng(c * 10 + o)
+    x = jnp.asarray(rng.standard_normal((2, 5, 6, c)).astype(np.float32))
+    p = {"kernel": jnp.asarray(rng.standard_normal((3, 3, c, o)).astype(np.float32)),
+         "bias": jnp.asarray(rng.standard_normal(o).astype(np.float32))}
+    pos = rng.standard_normal(size + (c,)).astype(np.float32) if with_pos else None
+    ref = dpt.conv2d(p, resize.resize_bilinear_align_corners(x, size) + (0 if pos is None else pos))
+    got = jax.jit(resize.resized_conv3x3(p, size, pos))(x)
+    assert got.shape == (2,) + size + (o,)
+    assert rel_err(got, ref) <= 1e-5
+
+
+def test_resized_conv3x3_rejects_other_kernels_and_maps():
+    with pytest.raises(ValueError, match="3x3 kernel"):
+        resize.resized_conv3x3({"kernel": jnp.zeros((1, 1, 4, 4))}, (3, 3))
+    with pytest.raises(ValueError, match="positional map"):
+        resize.resized_conv3x3({"kernel": jnp.zeros((3, 3, 4, 4))}, (3, 3), np.zeros((2, 2, 4), np.float32))
+
+
+def test_wide_head_convolves_at_low_resolution_as_written(setup, monkeypatch):
+    """A head as wide as VGGT-1B's last conv needs (features 64: output_conv1 32 -> 32
+    channels, so the fused branch), in two groups of frames: the model's depth head
+    against the same head with the upsampling and conv as written."""
+    config, io, aggregated, image_hw = setup
+    wide = dataclasses.replace(config, dpt_head=dataclasses.replace(config.dpt_head, features=64))
+    shapes = jax.eval_shape(init_params, wide, jax.random.PRNGKey(0))["depth_head"]
+    rng = np.random.default_rng(3)
+    # kernels scaled by their fan-in, so that the activations stay O(1) through the head
+    hp = {"depth_head": jax.tree.map(lambda a: jnp.asarray(
+        rng.standard_normal(a.shape).astype(np.float32) / np.sqrt(np.prod(a.shape[:-1]))), shapes)}
+    assert hp["depth_head"]["scratch"]["output_conv2"]["0"]["kernel"].shape[2:] == (32, 32)
+    grid = wide.token_grid(image_hw)
+    monkeypatch.setattr(dpt, "GROUP_PIXELS", 2 * image_hw[0] * image_hw[1])
+
+    def as_written(p, size, pos=None):
+        return lambda x: dpt.conv2d(p, resize.resize_bilinear_align_corners(x, size) + (0 if pos is None else pos))
+
+    fused = jax.jit(lambda p, a: dpt.dense_heads(p, a, wide.dpt_head, grid))(hp, aggregated)
+    monkeypatch.setattr(dpt, "resized_conv3x3", as_written)
+    ref = jax.jit(lambda p, a: dpt.dense_heads(p, a, wide.dpt_head, grid))(hp, aggregated)
+    for key in ref:
+        assert rel_err(fused[key], ref[key]) <= 1e-5, key

@@ -23,6 +23,7 @@ from rvggt_jax.model import layers
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
+from rvggt_jax.model.heads.resize import resize_bilinear_align_corners, resized_conv3x3
 from rvggt_jax.model.kept import KeptLayer, ProjectedLayer
 from rvggt_jax.model.params import Params
 
@@ -73,30 +74,6 @@ def conv_transpose_patchwise(p: Params, x: jax.Array) -> jax.Array:
     n, h, w, _ = x.shape
     y = jnp.einsum("nijc,abco->niajbo", x, p["kernel"], precision=jax.lax.Precision.HIGHEST)
     return y.reshape(n, h * k, w * k, -1) + p["bias"]
-
-
-def _align_corners_axis(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Source indices (lower, upper) and upper weight for align-corners linear resizing,
-    with torch's float32 arithmetic (scale (in-1)/(out-1), lower = floor(scale * i))."""
-    scale = np.float32((in_size - 1) / (out_size - 1)) if out_size > 1 else np.float32(0.0)
-    src = scale * np.arange(out_size, dtype=np.float32)
-    lo = np.minimum(src.astype(np.int64), in_size - 1)
-    hi = np.minimum(lo + 1, in_size - 1)
-    return lo, hi, (src - lo.astype(np.float32)).astype(np.float32)
-
-
-def resize_bilinear_align_corners(x: jax.Array, size: tuple[int, int]) -> jax.Array:
-    """torch `F.interpolate(mode="bilinear", align_corners=True)` on NHWC: corner pixels of
-    input and output coincide. (jax.image.resize uses half-pixel centres instead.)
-    x [N, H, W, C] -> [N, size[0], size[1], C]."""
-    def along(x, axis, out_size):
-        lo, hi, wt = _align_corners_axis(x.shape[axis], out_size)
-        shape = [1] * x.ndim
-        shape[axis] = out_size
-        wt = jnp.asarray(wt.reshape(shape))
-        return jnp.take(x, lo, axis=axis) * (1 - wt) + jnp.take(x, hi, axis=axis) * wt
-
-    return along(along(x, 2, size[1]), 1, size[0])
 
 
 # ---------------------------------------------------------------------------------------
@@ -154,9 +131,11 @@ def residual_conv_unit(p: Params, x: jax.Array) -> jax.Array:
     return conv2d(p["conv2"], jax.nn.relu(conv2d(p["conv1"], x))) + x
 
 
-def fusion_block(p: Params, x: jax.Array, skip: jax.Array | None, size: tuple[int, int] | None) -> jax.Array:
+def fusion_block(p: Params, x: jax.Array, skip: jax.Array | None, size: tuple[int, int] | None,
+                 then: Params | None = None) -> jax.Array:
     """x (+ residual unit of `skip`), residual unit, align-corners upsampling to `size`
-    (default: twice the input), 1x1 out_conv. NHWC."""
+    (default: twice the input), 1x1 out_conv. NHWC. `then`: a 3x3 conv that follows
+    (the head's output_conv1), run with the upsampling (`resize.resized_conv3x3`)."""
     if skip is not None:
         x = x + residual_conv_unit(p["resConfUnit1"], skip)
     x = residual_conv_unit(p["resConfUnit2"], x)
@@ -165,17 +144,21 @@ def fusion_block(p: Params, x: jax.Array, skip: jax.Array | None, size: tuple[in
     # Upstream resizes, then applies the 1x1 out_conv. Both are linear and the resize
     # weights of every output pixel sum to 1, so the conv commutes with the resize
     # (equal up to float rounding): run it on the input, up to 4x fewer pixels.
-    return resize_bilinear_align_corners(conv2d(p["out_conv"], x), size)
+    x = conv2d(p["out_conv"], x)
+    return resize_bilinear_align_corners(x, size) if then is None else resized_conv3x3(then, size)(x)
 
 
-def _scratch_fuse(p: Params, feats: list[jax.Array]) -> jax.Array:
-    """Four multi-scale maps (finest first) -> fused map at twice the finest resolution."""
+def _scratch_fuse(p: Params, feats: list[jax.Array], exact_order: bool = False) -> jax.Array:
+    """Four multi-scale maps (finest first) -> fused map at twice the finest resolution.
+    exact_order: output_conv1 after the upsampling, in upstream's float32 order (for the
+    track head, whose tracker amplifies rounding: tests/helpers/tolerances.py)."""
     rn = [conv2d(p[f"layer{i + 1}_rn"], f) for i, f in enumerate(feats)]
     out = fusion_block(p["refinenet4"], rn[3], None, rn[2].shape[1:3])
     out = fusion_block(p["refinenet3"], out, rn[2], rn[1].shape[1:3])
     out = fusion_block(p["refinenet2"], out, rn[1], rn[0].shape[1:3])
-    out = fusion_block(p["refinenet1"], out, rn[0], None)
-    return conv2d(p["output_conv1"], out)
+    if exact_order:
+        return conv2d(p["output_conv1"], fusion_block(p["refinenet1"], out, rn[0], None))
+    return fusion_block(p["refinenet1"], out, rn[0], None, then=p["output_conv1"])
 
 
 # ---------------------------------------------------------------------------------------
@@ -206,13 +189,14 @@ def level_map(params: Params, level: int, tokens: jax.Array, patch_start_idx: in
     return conv2d(params["projects"][str(level)], _token_map(params, tokens, patch_start_idx, grid_hw))
 
 
-def _fused_features(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
-                    patch_size: int, pos_embed: bool, down_ratio: int,
-                    columns: Sequence[tuple[int, int] | None] = (None,) * 4) -> jax.Array:
-    """Shared trunk of both modes on frames: 4 token sets [N, P, C] ->
-    [N, h*p/down, w*p/down, F] after the final upsampling (and positional embedding when
-    `pos_embed`). A layer with `columns` (first, width) is already projected
-    ([N, h*w, F'], a `ProjectedLayer`'s frames): the head's level map is those columns."""
+def _fused_map(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
+               patch_size: int, pos_embed: bool, columns: Sequence[tuple[int, int] | None] = (None,) * 4,
+               exact_order: bool = False) -> jax.Array:
+    """Shared trunk of both modes on frames: 4 token sets [N, P, C] -> the fused map
+    [N, 8h, 8w, F/2] (output_conv1's, before the final upsampling; (h, w) the token grid).
+    A layer with `columns` (first, width) is already projected ([N, h*w, F'], a
+    `ProjectedLayer`'s frames): the head's level map is those columns. `exact_order`:
+    see `_scratch_fuse`."""
     grid_hw = (image_hw[0] // patch_size, image_hw[1] // patch_size)
     feats = []
     for i, (t, col) in enumerate(zip(tokens, columns)):
@@ -223,9 +207,20 @@ def _fused_features(params: Params, tokens: Sequence[jax.Array], image_hw: tuple
         if pos_embed:
             x = add_pos_embed(x, image_hw)
         feats.append(_resize_layer(params, i, x))
-    out = _scratch_fuse(params["scratch"], feats)
-    out_hw = (grid_hw[0] * patch_size // down_ratio, grid_hw[1] * patch_size // down_ratio)
-    out = resize_bilinear_align_corners(out, out_hw)
+    return _scratch_fuse(params["scratch"], feats, exact_order)
+
+
+def _output_hw(image_hw: tuple[int, int], patch_size: int, down_ratio: int) -> tuple[int, int]:
+    return tuple(d // patch_size * patch_size // down_ratio for d in image_hw)
+
+
+def _fused_features(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
+                    patch_size: int, pos_embed: bool, down_ratio: int,
+                    columns: Sequence[tuple[int, int] | None] = (None,) * 4) -> jax.Array:
+    """The feature-only trunk: `_fused_map` upsampled to
+    [N, h*p/down, w*p/down, F] (plus the positional embedding when `pos_embed`)."""
+    out = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, columns, exact_order=True)
+    out = resize_bilinear_align_corners(out, _output_hw(image_hw, patch_size, down_ratio))
     return add_pos_embed(out, image_hw) if pos_embed else out
 
 
@@ -374,13 +369,18 @@ def activate_head(out: jax.Array, activation: str = "norm_exp",
 def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start_idx: int, patch_size: int,
                     activation: str, conf_activation: str, columns=(None,) * 4):
     """The dense DPT head on one group of frames: tokens [G, P, 2E] x 4 -> (pred, conf)
-    (`columns`: see `_fused_features`)."""
+    (`columns`: see `_fused_map`)."""
     conv2 = params["scratch"]["output_conv2"]
+    out_hw = _output_hw(image_hw, patch_size, 1)
+    width = params["scratch"]["output_conv1"]["kernel"].shape[-1]
+    # The upsampling, the positional map and output_conv2's 3x3 conv are one linear map;
+    # made here, once, its input-free part is not recomputed per group of frames
+    upsample_conv = resized_conv3x3(conv2["0"], out_hw, pos_embed_map(*out_hw, width, image_hw[1] / image_hw[0])
+                                    if config.pos_embed else None)
 
     def per_frames(tokens):
-        x = _fused_features(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, down_ratio=1,
-                            columns=columns)
-        x = conv2d(conv2["2"], jax.nn.relu(conv2d(conv2["0"], x)))
+        x = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, columns)
+        x = conv2d(conv2["2"], jax.nn.relu(upsample_conv(x)))
         return activate_head(x, activation, conf_activation)
 
     return per_frames
