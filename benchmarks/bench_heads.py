@@ -1,7 +1,8 @@
 """The depth and point DPT heads on this machine: each upsampling fused with the 3x3
-convolution after it (`heads/resize.resized_conv3x3`: refinenet1's with output_conv1, the
-last one with output_conv2's first conv; what the model runs) against the composition
-it replaces (resize, add the positional map, convolve at the higher resolution), timed
+convolution after it (what the model runs: `heads/resize.patchwise_conv3x3`, levels 0
+and 1's transposed convs with layer1_rn / layer2_rn; `resized_conv3x3`, refinenet1's
+resize with output_conv1 and the last one with output_conv2's first conv) against the
+compositions they replace (upsample, then convolve at the higher resolution), timed
 alternately in one run on random aggregator tokens.
 
     python benchmarks/bench_heads.py --layout small --frames 64 --height 168 --width 224
@@ -42,15 +43,16 @@ def _reference(p, size, pos=None):
 
 def build(variant: str, config, grid):
     """A jitted dense_heads for `variant` ("fused" or "resize-then-conv"): the reference
-    swaps dpt's `resized_conv3x3` while tracing, so each program has one form throughout."""
+    swaps dpt's `resized_conv3x3` and `patchwise_levels` while tracing, so each program has one form throughout."""
     def heads(p, agg):
         if variant == "fused":
             return dpt.dense_heads(p, agg, config.dpt_head, grid)
-        saved, dpt.resized_conv3x3 = dpt.resized_conv3x3, _reference
+        saved = dpt.resized_conv3x3, dpt.patchwise_levels
+        dpt.resized_conv3x3, dpt.patchwise_levels = _reference, lambda params: {}
         try:
             return dpt.dense_heads(p, agg, config.dpt_head, grid)
         finally:
-            dpt.resized_conv3x3 = saved
+            dpt.resized_conv3x3, dpt.patchwise_levels = saved
     return jax.jit(heads)
 
 

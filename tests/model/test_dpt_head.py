@@ -175,3 +175,23 @@ def test_wide_head_convolves_at_low_resolution_as_written(setup, monkeypatch):
     ref = jax.jit(lambda p, a: dpt.dense_heads(p, a, wide.dpt_head, grid))(hp, aggregated)
     for key in ref:
         assert rel_err(fused[key], ref[key]) <= 1e-5, key
+
+
+@pytest.mark.parametrize("k, hw", [(4, (3, 5)), (2, (4, 3)), (4, (1, 2)), (2, (1, 1))])
+@pytest.mark.parametrize("conv_bias", [False, True])
+def test_patchwise_conv3x3_equals_upsample_then_conv(k, hw, conv_bias):
+    """A level's x4 / x2 transposed conv and its 3x3 layer_rn as one map (composed
+    kernels, <= 2 x 2 source pixels per output pixel), against the two convs in turn:
+    maps of 1 to 5 pixels a side, so every border case of the zero padding is in."""
+    rng = np.random.default_rng(k * 10 + hw[0])
+    i_, m, o = 3, 5, 4
+    x = jnp.asarray(rng.standard_normal((2,) + hw + (i_,)).astype(np.float32))
+    up = {"kernel": jnp.asarray(rng.standard_normal((k, k, i_, m)).astype(np.float32)),
+          "bias": jnp.asarray(rng.standard_normal(m).astype(np.float32))}
+    conv = {"kernel": jnp.asarray(rng.standard_normal((3, 3, m, o)).astype(np.float32))}
+    if conv_bias:
+        conv["bias"] = jnp.asarray(rng.standard_normal(o).astype(np.float32))
+    ref = dpt.conv2d(conv, dpt.conv_transpose_patchwise(up, x))
+    got = jax.jit(resize.patchwise_conv3x3(up, conv))(x)
+    assert got.shape == (2, k * hw[0], k * hw[1], o)
+    assert rel_err(got, ref) <= 1e-5

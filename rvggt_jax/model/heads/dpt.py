@@ -17,13 +17,13 @@ from typing import Any, Callable, Mapping, Sequence
 import chex
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from rvggt_jax.model import layers
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
-from rvggt_jax.model.heads.resize import resize_bilinear_align_corners, resized_conv3x3
+from rvggt_jax.model.heads.pos_embed import add_pos_embed, pos_embed_map
+from rvggt_jax.model.heads.resize import patchwise_conv3x3, resize_bilinear_align_corners, resized_conv3x3
 from rvggt_jax.model.kept import KeptLayer, ProjectedLayer
 from rvggt_jax.model.params import Params
 
@@ -32,9 +32,6 @@ from rvggt_jax.model.params import Params
 # head slices per group of frames (a plain array is taken as `KeptLayer.of(array)`), or
 # a `ProjectedLayer` holding the head's first step on it (`projections.head_projections`).
 Aggregated = Sequence[KeptLayer | ProjectedLayer | jax.Array] | Mapping[int, KeptLayer | ProjectedLayer | jax.Array]
-
-POS_EMBED_RATIO = 0.1
-POS_EMBED_OMEGA0 = 100.0
 
 # ---------------------------------------------------------------------------------------
 # Convolutions and resizing (NHWC)
@@ -77,47 +74,6 @@ def conv_transpose_patchwise(p: Params, x: jax.Array) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------------------
-# Positional embedding (sin/cos of a centred, diagonal-normalised uv grid)
-# ---------------------------------------------------------------------------------------
-
-
-def uv_grid(width: int, height: int, aspect_ratio: float) -> np.ndarray:
-    """[height, width, 2] (u, v) pixel-centre coordinates of a plane whose half-diagonal is 1
-    and whose width:height is `aspect_ratio`; float32, as upstream's `create_uv_grid`."""
-    diag = (aspect_ratio ** 2 + 1.0) ** 0.5
-    span_x, span_y = aspect_ratio / diag, 1.0 / diag
-    xs = np.linspace(-span_x * (width - 1) / width, span_x * (width - 1) / width, width)
-    ys = np.linspace(-span_y * (height - 1) / height, span_y * (height - 1) / height, height)
-    uu, vv = np.meshgrid(xs.astype(np.float32), ys.astype(np.float32), indexing="xy")
-    return np.stack([uu, vv], axis=-1)
-
-
-def _sincos_1d(dim: int, pos: np.ndarray, omega0: float) -> np.ndarray:
-    """[M] positions -> [M, dim]: sin then cos of pos * omega0^(-2i/dim), i < dim/2.
-    Upstream forms the products in float64 from float32 positions."""
-    omega = 1.0 / omega0 ** (np.arange(dim // 2, dtype=np.float64) / (dim / 2.0))
-    angles = pos.astype(np.float64)[:, None] * omega[None, :]
-    return np.concatenate([np.sin(angles), np.cos(angles)], axis=1).astype(np.float32)
-
-
-def pos_embed_map(height: int, width: int, channels: int, aspect_ratio: float) -> np.ndarray:
-    """The additive positional map [height, width, channels] (already times 0.1): channels
-    [0, C/2) embed u, [C/2, C) embed v. A shape-only constant, so computed in numpy."""
-    if channels % 4:
-        raise ValueError(f"the DPT positional embedding needs channels % 4 == 0, got {channels}")
-    grid = uv_grid(width, height, aspect_ratio).reshape(-1, 2)
-    emb = np.concatenate([_sincos_1d(channels // 2, grid[:, 0], POS_EMBED_OMEGA0),
-                          _sincos_1d(channels // 2, grid[:, 1], POS_EMBED_OMEGA0)], axis=-1)
-    return (emb.reshape(height, width, channels) * np.float32(POS_EMBED_RATIO)).astype(np.float32)
-
-
-def add_pos_embed(x: jax.Array, image_hw: tuple[int, int]) -> jax.Array:
-    """x [N, h, w, C] + the positional map of an h x w grid with the image's aspect ratio."""
-    _, h, w, c = x.shape
-    return x + jnp.asarray(pos_embed_map(h, w, c, image_hw[1] / image_hw[0]))
-
-
-# ---------------------------------------------------------------------------------------
 # Fusion (RefineNet-style) blocks
 # ---------------------------------------------------------------------------------------
 
@@ -148,11 +104,11 @@ def fusion_block(p: Params, x: jax.Array, skip: jax.Array | None, size: tuple[in
     return resize_bilinear_align_corners(x, size) if then is None else resized_conv3x3(then, size)(x)
 
 
-def _scratch_fuse(p: Params, feats: list[jax.Array], exact_order: bool = False) -> jax.Array:
-    """Four multi-scale maps (finest first) -> fused map at twice the finest resolution.
-    exact_order: output_conv1 after the upsampling, in upstream's float32 order (for the
-    track head, whose tracker amplifies rounding: tests/helpers/tolerances.py)."""
-    rn = [conv2d(p[f"layer{i + 1}_rn"], f) for i, f in enumerate(feats)]
+def _scratch_fuse(p: Params, rn: list[jax.Array], exact_order: bool = False) -> jax.Array:
+    """Four multi-scale maps after their `layer{i}_rn` convs (finest first) -> fused map at
+    twice the finest resolution. exact_order: output_conv1 after the upsampling, in
+    upstream's float32 order (for the track head, whose tracker amplifies rounding:
+    tests/helpers/tolerances.py)."""
     out = fusion_block(p["refinenet4"], rn[3], None, rn[2].shape[1:3])
     out = fusion_block(p["refinenet3"], out, rn[2], rn[1].shape[1:3])
     out = fusion_block(p["refinenet2"], out, rn[1], rn[0].shape[1:3])
@@ -191,14 +147,16 @@ def level_map(params: Params, level: int, tokens: jax.Array, patch_start_idx: in
 
 def _fused_map(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
                patch_size: int, pos_embed: bool, columns: Sequence[tuple[int, int] | None] = (None,) * 4,
-               exact_order: bool = False) -> jax.Array:
+               upsampled: Mapping[int, Callable] | None = None) -> jax.Array:
     """Shared trunk of both modes on frames: 4 token sets [N, P, C] -> the fused map
     [N, 8h, 8w, F/2] (output_conv1's, before the final upsampling; (h, w) the token grid).
     A layer with `columns` (first, width) is already projected ([N, h*w, F'], a
-    `ProjectedLayer`'s frames): the head's level map is those columns. `exact_order`:
-    see `_scratch_fuse`."""
+    `ProjectedLayer`'s frames): the head's level map is those columns. `upsampled`:
+    {0: f, 1: f}, levels 0 and 1's transposed convs and their layer_rn convs as one map
+    (`patchwise_levels`, made outside the frame loop); None: every op in upstream's
+    float32 order (`_scratch_fuse`'s exact_order, the track head)."""
     grid_hw = (image_hw[0] // patch_size, image_hw[1] // patch_size)
-    feats = []
+    rn = []
     for i, (t, col) in enumerate(zip(tokens, columns)):
         if col is None:
             x = level_map(params, i, t, patch_start_idx, grid_hw)
@@ -206,8 +164,19 @@ def _fused_map(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int,
             x = t[..., col[0]:col[0] + col[1]].reshape(t.shape[0], *grid_hw, col[1])
         if pos_embed:
             x = add_pos_embed(x, image_hw)
-        feats.append(_resize_layer(params, i, x))
-    return _scratch_fuse(params["scratch"], feats, exact_order)
+        if upsampled is not None and i in upsampled:
+            rn.append(upsampled[i](x))
+        else:
+            rn.append(conv2d(params["scratch"][f"layer{i + 1}_rn"], _resize_layer(params, i, x)))
+    return _scratch_fuse(params["scratch"], rn, exact_order=upsampled is None)
+
+
+def patchwise_levels(params: Params) -> dict[int, Callable]:
+    """Levels 0 and 1 (x4 and x2 transposed convs) with their 3x3 layer_rn convs, each as
+    one map x [N, h, w, C_i] -> [N, k h, k w, F] (`resize.patchwise_conv3x3`: VGGT-1B's
+    level 0 does 36 [256, 256] products per token instead of 160)."""
+    return {i: patchwise_conv3x3(params["resize_layers"][str(i)], params["scratch"][f"layer{i + 1}_rn"])
+            for i in (0, 1)}
 
 
 def _output_hw(image_hw: tuple[int, int], patch_size: int, down_ratio: int) -> tuple[int, int]:
@@ -219,7 +188,7 @@ def _fused_features(params: Params, tokens: Sequence[jax.Array], image_hw: tuple
                     columns: Sequence[tuple[int, int] | None] = (None,) * 4) -> jax.Array:
     """The feature-only trunk: `_fused_map` upsampled to
     [N, h*p/down, w*p/down, F] (plus the positional embedding when `pos_embed`)."""
-    out = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, columns, exact_order=True)
+    out = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, columns)
     out = resize_bilinear_align_corners(out, _output_hw(image_hw, patch_size, down_ratio))
     return add_pos_embed(out, image_hw) if pos_embed else out
 
@@ -377,9 +346,10 @@ def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start
     # made here, once, its input-free part is not recomputed per group of frames
     upsample_conv = resized_conv3x3(conv2["0"], out_hw, pos_embed_map(*out_hw, width, image_hw[1] / image_hw[0])
                                     if config.pos_embed else None)
+    upsampled = patchwise_levels(params)
 
     def per_frames(tokens):
-        x = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, columns)
+        x = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, columns, upsampled)
         x = conv2d(conv2["2"], jax.nn.relu(upsample_conv(x)))
         return activate_head(x, activation, conf_activation)
 

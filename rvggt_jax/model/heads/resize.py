@@ -1,15 +1,18 @@
-"""Align-corners bilinear resizing (torch's `F.interpolate(mode="bilinear",
-align_corners=True)`) and the DPT head's last upsampling fused with the 3x3 convolution
-that follows it.
+"""Upsampling in the DPT heads: align-corners bilinear resizing (torch's
+`F.interpolate(mode="bilinear", align_corners=True)`), and each upsampling fused with the
+3x3 convolution that follows it, so that the convolution's channel mix runs at the low
+resolution.
 
-The dense DPT head upsamples its fused map [N, h, w, C] to the image size [H, W]
-(about 1.75x per axis), adds the positional map and runs a 3x3 convolution C -> O there.
-Every step is linear, and bilinear resizing is separable, so the same output comes from
-convolving at the lower resolution: each of the kernel's 3 x 3 taps reads the resized
-map shifted by (dy, dx), which is the resize with shifted source rows / columns. Mixing
-the channels before the resize does the 9 C O multiply-adds per input pixel instead of
-per output pixel (~3x fewer). Equal up to float rounding; docs/benchmarks.md has the
-measurements.
+- `resized_conv3x3`: a bilinear upsampling (and the positional map) then a 3x3 conv.
+  Every step is linear and the resize is separable, so each of the kernel's 9 taps reads
+  the resized map at a shifted row and column, which is the resize with shifted source
+  indices: mixing the channels before the resize does the 9 C O multiply-adds per input
+  pixel instead of per output pixel (~4x fewer for a 2x upsampling, ~3x for 1.75x).
+- `patchwise_conv3x3`: a transposed conv whose stride is its kernel (each input pixel
+  paints a k x k block) then a 3x3 conv: composing the kernels, each output pixel sums
+  <= 2 x 2 input pixels' products instead of 9 upsampled ones.
+
+Equal up to float rounding; docs/benchmarks.md has the measurements.
 """
 
 from __future__ import annotations
@@ -115,5 +118,79 @@ def resized_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarra
         for a in range(3):  # the row shifts dy = -1, 0, 1
             out = out + _lerp(z[:, :, :, a], 1, *rows[a])
         return out
+
+    return fused
+
+
+def _shift(x: jax.Array, axis: int, s: int) -> jax.Array:
+    """out[i] = x[i + s] along `axis` (s in -1, 0, 1), zero where i + s is outside."""
+    if s == 0:
+        return x
+    n = x.shape[axis]
+    kept = jax.lax.slice_in_dim(x, max(s, 0), n + min(s, 0), axis=axis)
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (max(-s, 0), max(s, 0))
+    return jnp.pad(kept, pad)
+
+
+def _source_rows(k: int) -> np.ndarray:
+    """For a k x k patchwise upsampling followed by a 3x3 conv, [k + 2, k, 3]: for each
+    (output sub-row a, source row shift s) pair that any tap reaches (sub-rows 0..k-1 from
+    the input pixel itself, s = 0; sub-row 0 from the pixel above, s = -1; sub-row k-1
+    from the one below, s = +1), 1 at (upsampled sub-row (a + dy) % k, tap dy + 1) for each
+    tap dy whose row (a + dy) // k is that shift. (Columns are the same.)"""
+    pairs = [(a, 0) for a in range(k)] + [(0, -1), (k - 1, 1)]
+    select = np.zeros((k + 2, k, 3), np.float32)
+    for p, (a, s) in enumerate(pairs):
+        for dy in (-1, 0, 1):
+            if (a + dy) // k == s:
+                select[p, (a + dy) % k, dy + 1] = 1
+    return select
+
+
+def patchwise_conv3x3(up: Params, conv: Params) -> Callable[[jax.Array], jax.Array]:
+    """x [N, h, w, I] -> conv3x3(patchwise upsampling of x) [N, k h, k w, O], zero
+    padding 1: the DPT head's x4 / x2 transposed convs (stride = kernel k, `up`: kernel
+    [k, k, I, M], bias [M]) and the 3x3 `layer{1,2}_rn` after them (`conv`: [3, 3, M, O]).
+
+    Every upsampled pixel is one input pixel's matmul, so each output pixel's 9 taps
+    read at most 2 x 2 input pixels: composing the two kernels, an output pixel is the sum
+    of <= 4 [I, O] products instead of 9 [M, O] ones (plus the upsampling's I x M): per
+    input pixel (k + 2)^2 products against 9 k^2 + k^2 (x4: 36 against 160). Returns the
+    function of x; the composed kernels are made once, here (outside a frame loop)."""
+    kt, k3 = up["kernel"], conv["kernel"]
+    k = kt.shape[0]
+    if kt.shape[:2] != (k, k) or k3.shape[:2] != (3, 3):
+        raise ValueError(f"patchwise_conv3x3 takes a square upsampling and a 3x3 conv, got {kt.shape}, {k3.shape}")
+    hp = jax.lax.Precision.HIGHEST
+    select = _source_rows(k)
+    # [pair_y, pair_x, I, O]: sum over the taps of sub-pixel kernel @ tap kernel
+    taps = jnp.einsum("abim,yxmo->aybxio", kt, k3, precision=hp)  # [k, 3, k, 3, I, O]
+    composed = jnp.einsum("pay,qbx,aybxio->pqio", select, select, taps, precision=hp)
+    o = k3.shape[-1]
+    # the upsampling's bias through the taps that land inside: [k h, k w, O] (made per
+    # call from the static validity of each tap, a few ops on [3, 3, O])
+    bias_taps = jnp.einsum("m,yxmo->yxo", up["bias"], k3, precision=hp)
+    extra = conv["bias"] if "bias" in conv else 0.0
+
+    def valid(size: int) -> np.ndarray:  # [size, 3]: output index i reads i + dy inside
+        idx = np.arange(size)[:, None] + np.arange(-1, 2)[None]
+        return ((idx >= 0) & (idx < size)).astype(np.float32)
+
+    def fused(x: jax.Array) -> jax.Array:
+        n, h, w, _ = x.shape
+        z = jnp.einsum("nhwi,pqio->nhwpqo", x, composed, precision=hp)  # [N, h, w, k+2, k+2, O]
+        # row pairs -> sub-rows: the pixel's own k, then the row above's into sub-row 0
+        # and the row below's into sub-row k-1 (zero beyond the map)
+        def gather(z, pix_axis, pair_axis):
+            own = jax.lax.slice_in_dim(z, 0, k, axis=pair_axis)
+            above = _shift(jax.lax.slice_in_dim(z, k, k + 1, axis=pair_axis), pix_axis, -1)
+            below = _shift(jax.lax.slice_in_dim(z, k + 1, k + 2, axis=pair_axis), pix_axis, 1)
+            middle = [jnp.zeros_like(above)] * (k - 2)
+            return own + jnp.concatenate([above] + middle + [below], axis=pair_axis)
+        y = gather(gather(z, 1, 3), 2, 4)  # [N, h, w, k, k, O]
+        y = y.transpose(0, 1, 3, 2, 4, 5).reshape(n, k * h, k * w, o)
+        offset = jnp.einsum("Yy,Xx,yxo->YXo", valid(k * h), valid(k * w), bias_taps, precision=hp)
+        return y + offset + extra
 
     return fused
