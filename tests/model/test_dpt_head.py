@@ -150,6 +150,9 @@ def test_resized_conv3x3_rejects_other_kernels_and_maps():
         resize.resized_conv3x3({"kernel": jnp.zeros((1, 1, 4, 4))}, (3, 3))
     with pytest.raises(ValueError, match="positional map"):
         resize.resized_conv3x3({"kernel": jnp.zeros((3, 3, 4, 4))}, (3, 3), np.zeros((2, 2, 4), np.float32))
+    with pytest.raises(ValueError, match="k >= 2"):
+        resize.patchwise_conv3x3({"kernel": jnp.zeros((1, 1, 4, 4)), "bias": jnp.zeros(4)},
+                                 {"kernel": jnp.zeros((3, 3, 4, 4))})
 
 
 def test_wide_head_convolves_at_low_resolution_as_written(setup, monkeypatch):

@@ -160,8 +160,9 @@ def patchwise_conv3x3(up: Params, conv: Params) -> Callable[[jax.Array], jax.Arr
     function of x; the composed kernels are made once, here (outside a frame loop)."""
     kt, k3 = up["kernel"], conv["kernel"]
     k = kt.shape[0]
-    if kt.shape[:2] != (k, k) or k3.shape[:2] != (3, 3):
-        raise ValueError(f"patchwise_conv3x3 takes a square upsampling and a 3x3 conv, got {kt.shape}, {k3.shape}")
+    if k < 2 or kt.shape[:2] != (k, k) or k3.shape[:2] != (3, 3):
+        raise ValueError(f"patchwise_conv3x3 takes a k x k upsampling (k >= 2) and a 3x3 conv, "
+                         f"got kernels {kt.shape} and {k3.shape}")
     hp = jax.lax.Precision.HIGHEST
     select = _source_rows(k)
     # [pair_y, pair_x, I, O]: sum over the taps of sub-pixel kernel @ tap kernel
