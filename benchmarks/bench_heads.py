@@ -48,7 +48,7 @@ def build(variant: str, config, grid):
         if variant == "fused":
             return dpt.dense_heads(p, agg, config.dpt_head, grid)
         saved = dpt.resized_conv3x3, dpt.patchwise_levels
-        dpt.resized_conv3x3, dpt.patchwise_levels = _reference, lambda params: {}
+        dpt.resized_conv3x3, dpt.patchwise_levels = _reference, lambda params, grid_hw: {}
         try:
             return dpt.dense_heads(p, agg, config.dpt_head, grid)
         finally:

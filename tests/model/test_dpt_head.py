@@ -152,7 +152,7 @@ def test_resized_conv3x3_rejects_other_kernels_and_maps():
         resize.resized_conv3x3({"kernel": jnp.zeros((3, 3, 4, 4))}, (3, 3), np.zeros((2, 2, 4), np.float32))
     with pytest.raises(ValueError, match="k >= 2"):
         resize.patchwise_conv3x3({"kernel": jnp.zeros((1, 1, 4, 4)), "bias": jnp.zeros(4)},
-                                 {"kernel": jnp.zeros((3, 3, 4, 4))})
+                                 {"kernel": jnp.zeros((3, 3, 4, 4))}, (2, 2))
 
 
 def test_wide_head_convolves_at_low_resolution_as_written(setup, monkeypatch):
@@ -195,6 +195,6 @@ def test_patchwise_conv3x3_equals_upsample_then_conv(k, hw, conv_bias):
     if conv_bias:
         conv["bias"] = jnp.asarray(rng.standard_normal(o).astype(np.float32))
     ref = dpt.conv2d(conv, dpt.conv_transpose_patchwise(up, x))
-    got = jax.jit(resize.patchwise_conv3x3(up, conv))(x)
+    got = jax.jit(resize.patchwise_conv3x3(up, conv, hw))(x)
     assert got.shape == (2, k * hw[0], k * hw[1], o)
     assert rel_err(got, ref) <= 1e-5

@@ -22,6 +22,7 @@ from rvggt_jax.model import layers
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
+from rvggt_jax.model.heads.conv import conv2d, conv_transpose_patchwise
 from rvggt_jax.model.heads.pos_embed import add_pos_embed, pos_embed_map
 from rvggt_jax.model.heads.resize import patchwise_conv3x3, resize_bilinear_align_corners, resized_conv3x3
 from rvggt_jax.model.kept import KeptLayer, ProjectedLayer
@@ -32,46 +33,6 @@ from rvggt_jax.model.params import Params
 # head slices per group of frames (a plain array is taken as `KeptLayer.of(array)`), or
 # a `ProjectedLayer` holding the head's first step on it (`projections.head_projections`).
 Aggregated = Sequence[KeptLayer | ProjectedLayer | jax.Array] | Mapping[int, KeptLayer | ProjectedLayer | jax.Array]
-
-# ---------------------------------------------------------------------------------------
-# Convolutions and resizing (NHWC)
-# ---------------------------------------------------------------------------------------
-
-
-def conv2d(p: Params, x: jax.Array, stride: int = 1, padding: int | None = None) -> jax.Array:
-    """nn.Conv2d with a square kernel: x [N, H, W, I], kernel [kh, kw, I, O] -> [N, H', W', O].
-    `padding` defaults to 'same' for odd kernels (kh // 2), as every conv of the head."""
-    kh = p["kernel"].shape[0]
-    pad = kh // 2 if padding is None else padding
-    if kh == 1 and stride == 1 and pad == 0:
-        # A 1x1 conv is a per-pixel matmul; XLA:CPU runs it ~8x faster as one.
-        return layers.linear(_as_linear(p), x)
-    y = jax.lax.conv_general_dilated(
-        x, p["kernel"], window_strides=(stride, stride), padding=((pad, pad), (pad, pad)),
-        dimension_numbers=("NHWC", "HWIO", "NHWC"), precision=jax.lax.Precision.HIGHEST)
-    if "bias" in p:
-        y = y + p["bias"]
-    return y
-
-
-def _as_linear(p: Params) -> Params:
-    out = {"kernel": p["kernel"][0, 0]}
-    if "bias" in p:
-        out["bias"] = p["bias"]
-    return out
-
-
-def conv_transpose_patchwise(p: Params, x: jax.Array) -> jax.Array:
-    """nn.ConvTranspose2d whose stride equals its kernel size (k) and padding is 0: every
-    input pixel paints its own k x k output block, so it is one matmul and a reshape.
-
-    x [N, h, w, I], kernel [k, k, I, O] (torch weight [I, O, k, k] permuted (2, 3, 0, 1))
-    -> [N, k*h, k*w, O]; output (k*i + a, k*j + b) = x(i, j) @ kernel[a, b] + bias."""
-    k = p["kernel"].shape[0]
-    n, h, w, _ = x.shape
-    y = jnp.einsum("nijc,abco->niajbo", x, p["kernel"], precision=jax.lax.Precision.HIGHEST)
-    return y.reshape(n, h * k, w * k, -1) + p["bias"]
-
 
 # ---------------------------------------------------------------------------------------
 # Fusion (RefineNet-style) blocks
@@ -171,11 +132,11 @@ def _fused_map(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int,
     return _scratch_fuse(params["scratch"], rn, exact_order=upsampled is None)
 
 
-def patchwise_levels(params: Params) -> dict[int, Callable]:
+def patchwise_levels(params: Params, grid_hw: tuple[int, int]) -> dict[int, Callable]:
     """Levels 0 and 1 (x4 and x2 transposed convs) with their 3x3 layer_rn convs, each as
-    one map x [N, h, w, C_i] -> [N, k h, k w, F] (`resize.patchwise_conv3x3`: VGGT-1B's
+    one map x [N, h, w, C_i] -> [N, k h, k w, F], (h, w) = grid_hw (`resize.patchwise_conv3x3`: VGGT-1B's
     level 0 does 36 [256, 256] products per token instead of 160)."""
-    return {i: patchwise_conv3x3(params["resize_layers"][str(i)], params["scratch"][f"layer{i + 1}_rn"])
+    return {i: patchwise_conv3x3(params["resize_layers"][str(i)], params["scratch"][f"layer{i + 1}_rn"], grid_hw)
             for i in (0, 1)}
 
 
@@ -346,7 +307,7 @@ def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start
     # made here, once, its input-free part is not recomputed per group of frames
     upsample_conv = resized_conv3x3(conv2["0"], out_hw, pos_embed_map(*out_hw, width, image_hw[1] / image_hw[0])
                                     if config.pos_embed else None)
-    upsampled = patchwise_levels(params)
+    upsampled = patchwise_levels(params, (image_hw[0] // patch_size, image_hw[1] // patch_size))
 
     def per_frames(tokens):
         x = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, columns, upsampled)

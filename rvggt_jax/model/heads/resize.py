@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvggt_jax.model.heads.conv import conv2d
 from rvggt_jax.model.params import Params
 
 
@@ -70,13 +71,6 @@ def shifted_taps(in_size: int, out_size: int) -> list[tuple[np.ndarray, ...]]:
     return taps
 
 
-def _conv3x3(p: Params, x: jax.Array) -> jax.Array:
-    """[N, H, W, C] -> [N, H, W, O], zero padding 1, no bias."""
-    return jax.lax.conv_general_dilated(x, p["kernel"], (1, 1), ((1, 1), (1, 1)),
-                                        dimension_numbers=("NHWC", "HWIO", "NHWC"),
-                                        precision=jax.lax.Precision.HIGHEST)
-
-
 def resized_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarray | None = None
                     ) -> Callable[[jax.Array], jax.Array]:
     """x [N, h, w, C] -> conv3x3(resize_bilinear_align_corners(x, size) + pos) + bias
@@ -95,16 +89,18 @@ def resized_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarra
     c, o = kernel.shape[2:]
     if pos is not None and tuple(pos.shape) != tuple(size) + (c,):
         raise ValueError(f"the positional map is {tuple(pos.shape)}, the resized map {tuple(size) + (c,)}")
-    bias = p["bias"] if "bias" in p else jnp.zeros((o,), kernel.dtype)
     height, width = size
 
     if c < o:
         def plain(x):
             y = resize_bilinear_align_corners(x, size)
-            return _conv3x3(p, y if pos is None else y + jnp.asarray(pos, y.dtype)) + bias
+            return conv2d(p, y if pos is None else y + jnp.asarray(pos, y.dtype))
         return plain
 
-    offset = bias if pos is None else _conv3x3(p, jnp.asarray(pos, kernel.dtype)[None])[0] + bias
+    if pos is None:
+        offset = p["bias"] if "bias" in p else jnp.zeros((o,), kernel.dtype)
+    else:
+        offset = conv2d(p, jnp.asarray(pos, kernel.dtype)[None])[0]  # (bias included)
     # [C, (dx, dy, O)]: one matmul gives every tap's contribution of a pixel
     k = jnp.transpose(kernel, (2, 1, 0, 3)).reshape(c, 9 * o)
 
@@ -148,8 +144,8 @@ def _source_rows(k: int) -> np.ndarray:
     return select
 
 
-def patchwise_conv3x3(up: Params, conv: Params) -> Callable[[jax.Array], jax.Array]:
-    """x [N, h, w, I] -> conv3x3(patchwise upsampling of x) [N, k h, k w, O], zero
+def patchwise_conv3x3(up: Params, conv: Params, hw: tuple[int, int]) -> Callable[[jax.Array], jax.Array]:
+    """x [N, h, w, I] (hw = (h, w)) -> conv3x3(patchwise upsampling of x) [N, k h, k w, O], zero
     padding 1: the DPT head's x4 / x2 transposed convs (stride = kernel k, `up`: kernel
     [k, k, I, M], bias [M]) and the 3x3 `layer{1,2}_rn` after them (`conv`: [3, 3, M, O]).
 
@@ -157,7 +153,8 @@ def patchwise_conv3x3(up: Params, conv: Params) -> Callable[[jax.Array], jax.Arr
     read at most 2 x 2 input pixels: composing the two kernels, an output pixel is the sum
     of <= 4 [I, O] products instead of 9 [M, O] ones (plus the upsampling's I x M): per
     input pixel (k + 2)^2 products against 9 k^2 + k^2 (x4: 36 against 160). Returns the
-    function of x; the composed kernels are made once, here (outside a frame loop)."""
+    function of x; the composed kernels and the bias map are made once, here (outside a
+    frame loop)."""
     kt, k3 = up["kernel"], conv["kernel"]
     k = kt.shape[0]
     if k < 2 or kt.shape[:2] != (k, k) or k3.shape[:2] != (3, 3):
@@ -169,17 +166,23 @@ def patchwise_conv3x3(up: Params, conv: Params) -> Callable[[jax.Array], jax.Arr
     taps = jnp.einsum("abim,yxmo->aybxio", kt, k3, precision=hp)  # [k, 3, k, 3, I, O]
     composed = jnp.einsum("pay,qbx,aybxio->pqio", select, select, taps, precision=hp)
     o = k3.shape[-1]
-    # the upsampling's bias through the taps that land inside: [k h, k w, O] (made per
-    # call from the static validity of each tap, a few ops on [3, 3, O])
-    bias_taps = jnp.einsum("m,yxmo->yxo", up["bias"], k3, precision=hp)
-    extra = conv["bias"] if "bias" in conv else 0.0
+    h, w = hw
 
     def valid(size: int) -> np.ndarray:  # [size, 3]: output index i reads i + dy inside
         idx = np.arange(size)[:, None] + np.arange(-1, 2)[None]
         return ((idx >= 0) & (idx < size)).astype(np.float32)
 
+    # the upsampling's bias through the taps that land inside (fewer at the border), and
+    # the conv's own bias: [k h, k w, O]
+    bias_taps = jnp.einsum("m,yxmo->yxo", up["bias"], k3, precision=hp)
+    offset = jnp.einsum("Yy,Xx,yxo->YXo", valid(k * h), valid(k * w), bias_taps, precision=hp)
+    if "bias" in conv:
+        offset = offset + conv["bias"]
+
     def fused(x: jax.Array) -> jax.Array:
-        n, h, w, _ = x.shape
+        n = x.shape[0]
+        if x.shape[1:3] != (h, w):
+            raise ValueError(f"patchwise_conv3x3 was made for {h} x {w} maps, got {x.shape[1:3]}")
         z = jnp.einsum("nhwi,pqio->nhwpqo", x, composed, precision=hp)  # [N, h, w, k+2, k+2, O]
         # row pairs -> sub-rows: the pixel's own k, then the row above's into sub-row 0
         # and the row below's into sub-row k-1 (zero beyond the map)
@@ -190,8 +193,6 @@ def patchwise_conv3x3(up: Params, conv: Params) -> Callable[[jax.Array], jax.Arr
             middle = [jnp.zeros_like(above)] * (k - 2)
             return own + jnp.concatenate([above] + middle + [below], axis=pair_axis)
         y = gather(gather(z, 1, 3), 2, 4)  # [N, h, w, k, k, O]
-        y = y.transpose(0, 1, 3, 2, 4, 5).reshape(n, k * h, k * w, o)
-        offset = jnp.einsum("Yy,Xx,yxo->YXo", valid(k * h), valid(k * w), bias_taps, precision=hp)
-        return y + offset + extra
+        return y.transpose(0, 1, 3, 2, 4, 5).reshape(n, k * h, k * w, o) + offset
 
     return fused
