@@ -102,15 +102,22 @@ def worker_env(spec: dict) -> None:
             cuda[name.replace("_get_version", "")] = f"n/a ({type(e).__name__})"
     dev = jax.devices()[0]
     stats = dev.memory_stats() or {}
+    kernels = {}
     try:
         import rvggt_jax.model.forward  # noqa: F401 - the whole forward's imports
         import rvggt_jax
         package = rvggt_jax.__file__
+        # what "auto" can pick here: both rest on JAX-private functions that may move
+        from rvggt_jax.ops.attention import compilable_platforms, kernel_for
+        from rvggt_jax.ops.kernels.fused import cudnn_lse_available
+
+        kernels = {"compilable_platforms": list(compilable_platforms()), "cudnn_lse": cudnn_lse_available(),
+                   "auto_bf16_d64": kernel_for("cuda", "bfloat16", 64)}
     except Exception as e:  # noqa: BLE001
         package = f"IMPORT FAILED: {e!r}"
     emit(python=sys.version.split()[0], jax=jax.__version__, jaxlib=jaxlib.__version__, packages=packages,
          cuda=cuda, backend=jax.default_backend(), platform=dev.platform, device_kind=dev.device_kind,
-         device_count=jax.device_count(), bytes_limit=stats.get("bytes_limit"), package=package,
+         device_count=jax.device_count(), bytes_limit=stats.get("bytes_limit"), package=package, kernels=kernels,
          environment_info=jax.print_environment_info(return_string=True))
 
 
@@ -387,6 +394,7 @@ def markdown(rep: dict) -> str:
              f"{env.get('python', '?')}, jax {env.get('jax', '?')}, jaxlib {env.get('jaxlib', '?')}; "
              + ", ".join(f"{k} {v}" for k, v in sorted(env.get("packages", {}).items()) if k not in ("jax", "jaxlib")),
              "", "CUDA: " + (", ".join(f"{k} {v}" for k, v in cuda.items()) or "n/a"),
+             "", "Attention kernels: " + (", ".join(f"{k} {v}" for k, v in env.get("kernels", {}).items()) or "n/a"),
              "", "## Parity (tests/data/vggt_tiny; rel_err = max|ours - ref| / max|ref|)", "",
              "| variant | output | rel err | tol | result |", "|---|---|---:|---:|---|"]
     for v in rep.get("parity", []):

@@ -29,7 +29,9 @@ PLATFORMS = ("cuda", "tpu", "cpu")
 MEMORY_LIMIT_ENV = "RVGGT_MEMORY_LIMIT_GB"
 INSTALL_HINT = 'pip install "rvggt-jax[plan]"'
 # the package that holds each platform's compiler (the `[plan]` extra installs both)
-PLUGIN_MODULES = {"cuda": "jax_cuda12_plugin", "tpu": "libtpu"}
+# XLA's compiler per platform: either CUDA plugin (12 from the [plan] extra, 13 on newer
+# images) carries the CUDA compiler
+PLUGIN_MODULES = {"cuda": ("jax_cuda12_plugin", "jax_cuda13_plugin"), "tpu": ("libtpu",)}
 
 
 class UnknownTargetError(ValueError):
@@ -168,15 +170,20 @@ def check_compiler(target: Target) -> None:
     """Raise `CompilerMissingError` (saying what to install) when XLA's compiler for
     `target`'s platform cannot be imported; for a GPU also when cuDNN is missing (the
     bfloat16 plan would then hold another attention kernel than the card runs)."""
-    module = PLUGIN_MODULES.get(target.platform)
-    if module is None:
+    modules = PLUGIN_MODULES.get(target.platform)
+    if modules is None:
         return
-    try:
-        importlib.import_module(module)
-    except ImportError as e:
+    errors = []
+    for module in modules:
+        try:
+            importlib.import_module(module)
+            break
+        except ImportError as e:
+            errors.append(f"{module}: {e}")
+    else:
         raise CompilerMissingError(
-            f"planning for {target.name} needs XLA's {target.platform.upper()} compiler ({module} is not "
-            f"installed: {e}); install it with: {INSTALL_HINT}") from None
+            f"planning for {target.name} needs XLA's {target.platform.upper()} compiler (not installed: "
+            f"{'; '.join(errors)}); install it with: {INSTALL_HINT}")
     if target.platform == "cuda":
         from rvggt_jax.ops.attention import compilable_platforms
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import types
 
 import jax
 import jax.numpy as jnp
@@ -154,14 +155,29 @@ def test_a_target_of_ones_own_reads_its_description_from_a_path(tmp_path):
         tg.target_device(dataclasses.replace(mine, description="gone.txtpb"))
 
 
-@pytest.mark.parametrize("name, module", [("h100", "jax_cuda12_plugin"), ("tpu-v5p", "libtpu")])
-def test_a_missing_compiler_says_what_to_install(monkeypatch, name, module):
-    monkeypatch.setitem(sys.modules, module, None)  # the import fails, as when not installed
+@pytest.mark.parametrize("name, modules", [("h100", ("jax_cuda12_plugin", "jax_cuda13_plugin")),
+                                           ("tpu-v5p", ("libtpu",))])
+def test_a_missing_compiler_says_what_to_install(monkeypatch, name, modules):
+    for module in modules:
+        monkeypatch.setitem(sys.modules, module, None)  # the import fails, as when not installed
     with pytest.raises(tg.CompilerMissingError, match=r'pip install "rvggt-jax\[plan\]"') as e:
         tg.target_device(name)
-    assert module in str(e.value)
+    assert all(module in str(e.value) for module in modules)
     with pytest.raises(tg.CompilerMissingError, match="rvggt-jax"):
         memory_report(plan_config(), 2, 28, 28, target=name)
+
+
+@pytest.mark.parametrize("missing, present", [("jax_cuda12_plugin", "jax_cuda13_plugin"),
+                                              ("jax_cuda13_plugin", "jax_cuda12_plugin")])
+def test_either_cuda_plugin_carries_the_gpu_compiler(monkeypatch, missing, present):
+    # images with CUDA 13 (the lent H200's) ship jax_cuda13_plugin, the [plan] extra 12
+    monkeypatch.setitem(sys.modules, missing, None)
+    monkeypatch.setitem(sys.modules, present, types.ModuleType(present))
+    monkeypatch.setattr("rvggt_jax.ops.attention.compilable_platforms", lambda: ("cuda",))
+    tg.check_compiler(tg.TARGETS["h100"])  # no error
+    monkeypatch.setattr("rvggt_jax.ops.attention.compilable_platforms", lambda: ())
+    with pytest.raises(tg.CompilerMissingError, match="cuDNN"):
+        tg.check_compiler(tg.TARGETS["h100"])
 
 
 def test_a_compiler_that_cannot_describe_the_target_says_what_to_install(monkeypatch):
