@@ -29,6 +29,10 @@ DTYPES = ("float32", "bfloat16")
 # True and False name the default policy and none
 REMAT_POLICIES = ("none", "layers", "full", "dots")
 REMAT_OF_BOOL = {False: "none", True: "full"}
+# Precisions of float32 matmuls and convolutions (`VGGTConfig.matmul_precision`), as
+# `jax.default_matmul_precision` names them: "default" is the platform's fast one (TF32 on
+# an NVIDIA GPU, one bf16 pass on a TPU), "highest" full float32 everywhere
+MATMUL_PRECISIONS = ("default", "high", "highest")
 
 
 class TokenGrid(NamedTuple):
@@ -140,6 +144,14 @@ class VGGTConfig:
     # float32 on a GPU). A 16-bit-only kernel ("cudnn") needs dtype "bfloat16" and runs
     # the aggregator's attention; the float32 heads then take "auto".
     attention: str = "auto"
+    # Precision of the float32 matmuls and convolutions (one of MATMUL_PRECISIONS; the
+    # aggregator's bf16 ones are bf16 whatever this says). None follows `dtype`: "highest"
+    # for float32, so that float32 is float32 on every platform (a GPU's default TF32 moved
+    # the tiny fixture's outputs by 1.5e-3 on an H200, against 2e-6 at "highest",
+    # docs/benchmarks.md "GPU check"; a CPU computes float32 either way), and "default"
+    # JAX's default for bfloat16, whose float32 heads then take the platform's fast
+    # matmuls (TF32 on a GPU) unless `jax_default_matmul_precision` says otherwise.
+    matmul_precision: str | None = None
 
     def __post_init__(self):
         # remat=True / False (the flag it was before the policies) names a policy
@@ -155,6 +167,15 @@ class VGGTConfig:
     def compute_dtype(self) -> Any:
         """The aggregator's compute dtype as a jnp dtype."""
         return jnp.dtype(self.dtype)
+
+    @property
+    def dot_precision(self) -> str | None:
+        """The precision of float32 matmuls (`matmul_precision`, else by `dtype`) that
+        `rvggt_forward` and a train step run under (`ops.precision.precision_scope`); None
+        leaves JAX's own default (`jax_default_matmul_precision`, the platform's when unset)."""
+        if self.matmul_precision is not None:
+            return self.matmul_precision
+        return "highest" if self.dtype == "float32" else None
 
     @property
     def patch_start_idx(self) -> int:
@@ -214,6 +235,11 @@ class VGGTConfig:
         """A copy whose attention runs on `kernel` (one of `KERNELS`)."""
         return replace(self, attention=kernel).validate()
 
+    def with_precision(self, precision: str | None) -> "VGGTConfig":
+        """A copy whose float32 matmuls run at `precision` (one of MATMUL_PRECISIONS; None
+        follows the dtype: "highest" for float32, "default" for bfloat16)."""
+        return replace(self, matmul_precision=precision).validate()
+
     def with_remat(self, remat: bool | str = True) -> "VGGTConfig":
         """A copy with the rematerialisation policy `remat` (one of `REMAT_POLICIES`;
         True: "full", False: "none")."""
@@ -229,6 +255,9 @@ class VGGTConfig:
             raise ValueError(f"dtype must be one of {DTYPES}; got {self.dtype!r}")
         if self.remat not in REMAT_POLICIES:
             raise ValueError(f"remat must be one of {REMAT_POLICIES} (or True / False); got {self.remat!r}")
+        if self.matmul_precision is not None and self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"matmul_precision must be None or one of {MATMUL_PRECISIONS}; got "
+                             f"{self.matmul_precision!r}")
         if self.attention not in KERNELS:
             raise ValueError(f"attention must be one of {KERNELS}; got {self.attention!r}")
         if self.attention in HALF_ONLY and self.dtype == "float32":

@@ -18,6 +18,7 @@ import numpy as np
 
 from rvggt_jax.model.aggregator import aggregator_forward
 from rvggt_jax.ops.attention import kernel_scope
+from rvggt_jax.ops.precision import precision_scope
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.ops.shards import FrameShards
@@ -212,8 +213,8 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
     """`rvggt_forward` on checked inputs, over the frames of this device: images
     [B, S, 3, H, W] are this device's frames (`shards`, inside `jax.shard_map`; default
     all frames on one device) and so is every per-frame output. Every attention inside
-    runs on `config.attention`'s kernel."""
-    with kernel_scope(config.attention):
+    runs on `config.attention`'s kernel, every float32 matmul at `config.dot_precision`."""
+    with kernel_scope(config.attention), precision_scope(config.dot_precision):
         return _forward_frames(params, images, config, query_points, shards)
 
 
