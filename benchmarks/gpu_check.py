@@ -1,10 +1,10 @@
 """One command for a lent GPU: environment, parity, speed and memory of VGGT-1B (issue 24).
 
-    python benchmarks/gpu_check.py                 # ~8 minutes on one H200
+    python benchmarks/gpu_check.py                 # ~8 minutes on one H200 (--budget 470 s: the 300-frame pair if time is left)
     python benchmarks/gpu_check.py --quick         # 100 frames only, one timed run
     python benchmarks/gpu_check.py --dense-1000    # also dense at 1000 frames (~1e17 FLOP)
     python benchmarks/gpu_check.py --smoke         # tiny layout, any machine (CPU: a few minutes)
-    python benchmarks/gpu_check.py --only regime@1000 --runtime-peak --parity-variants float32
+    python benchmarks/gpu_check.py --only regime@1000 --parity-variants float32
 
 Parts, each caught and reported (a failing part never stops the next):
 1. env: jax, jaxlib, CUDA plugin, CUDA/cuDNN versions, the device and its memory. The
@@ -20,9 +20,10 @@ Parts, each caught and reported (a failing part never stops the next):
    the median of timed runs after one warm-up, the device's peak bytes, XLA's plan of the
    same compiled program, and whether it calls cuDNN's flash attention (`__cudnn$fmha`).
    Each program runs in a fresh process (JAX cannot reset a device's peak) with a timeout.
-   The peak before the runs is reported too: on a GPU, compiling allocates on the device
-   (XLA's autotuner). With --runtime-peak each program is compiled into JAX's persistent
-   cache by one process and loaded and run by the next, whose peak is the run's alone.
+   On a GPU compiling allocates on the device (XLA's autotuner: 38-40 GB of peak on an
+   H200 whatever the program), so each program is compiled into JAX's persistent cache
+   by one process and loaded and run by the next, whose peak is the run's alone (the
+   peak before the runs is reported too; --one-process does both in one).
 4. plan: the same programs compiled deviceless for the H200 (`rvggt_jax.planning.targets`'
    "h200": XLA's h200.txtpb, shipped in rvggt_jax/planning/gpu_specs/; JAX_PLATFORMS=cpu,
    XLA's CUDA compiler on the host), in the background while 2-3 run.
@@ -224,7 +225,7 @@ def worker_run(spec: dict) -> None:
     s, h, w = spec["frames"], spec["height"], spec["width"]
     params = random_params(abstract_params(cfg, param_dtype=spec["dtype"]))
     images = jax.device_put(np.random.default_rng(s).random((1, s, 3, h, w), dtype=np.float32))
-    if spec.get("cache_dir"):  # --runtime-peak: JAX's persistent cache, every program in it
+    if spec.get("cache_dir"):  # JAX's persistent cache, every program in it (not --one-process)
         jax.config.update("jax_compilation_cache_dir", spec["cache_dir"])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -368,8 +369,9 @@ def programs(args) -> list[dict]:
         sizes = [("regime", 3), ("dense", 3)]
     else:
         base = dict(layout="1b", dtype="bfloat16", height=392, width=518)
+        # 1000 frames before 300: the first run (2026-12-04) spent its budget before it
         sizes = ([("regime", 100), ("dense", 100)] if args.quick else
-                 [("regime", 100), ("dense", 100), ("regime", 300), ("dense", 300), ("regime", 1000)])
+                 [("regime", 100), ("dense", 100), ("regime", 1000), ("regime", 300), ("dense", 300)])
         if args.dense_1000:
             sizes.append(("dense", 1000))
     progs = [dict(base, preset=p, frames=s, key=f"{p}@{s}") for p, s in sizes]
@@ -459,7 +461,7 @@ def markdown(rep: dict) -> str:
                      + f" | {fmt_gb(r.get('plan_bytes'))} | "
                      f"{fmt_gb(p.get('plan_bytes'))} | {r.get('kernel', '')} | {p.get('kernel', '')} | {note} |")
     lines += ["", "Peak: `memory_stats()['peak_bytes_in_use']`, each program in a fresh process; before the runs: "
-              "after compiling (or, with --runtime-peak, after loading from the persistent cache). XLA plan: "
+              "after loading from the persistent cache (after compiling with --one-process). XLA plan: "
               "arguments + outputs + temporaries - aliased of the compiled program. Attention: call sites of "
               f"`{FMHA}` in the optimized HLO.", ""]
     lines += [f"- {n}" for n in rep.get("notes", [])]
@@ -545,10 +547,11 @@ def main(argv=None) -> None:
     ap.add_argument("--dense-1000", action="store_true", help="also dense at 1000 frames (~1e17 FLOP)")
     ap.add_argument("--no-plan", action="store_true", help="skip the deviceless plan")
     ap.add_argument("--only", nargs="+", metavar="PRESET@FRAMES", help="these programs only, e.g. regime@1000")
-    ap.add_argument("--runtime-peak", action="store_true",
-                    help="compile each program into JAX's persistent cache in one process, then load and run it in "
-                         "a fresh one: its peak holds no compile-time allocations (XLA:GPU's autotuning)")
-    ap.add_argument("--cache-dir", help="the persistent cache of --runtime-peak (default: the temp folder's)")
+    ap.add_argument("--one-process", dest="runtime_peak", action="store_false",
+                    help="compile and run each program in one process (its peak then holds what compiling "
+                         "allocated: 38-40 GB on an H200, XLA:GPU's autotuning); by default each program is "
+                         "compiled into JAX's persistent cache by one process and loaded and run by the next")
+    ap.add_argument("--cache-dir", help="the persistent cache the programs pass through (default: in the temp folder)")
     ap.add_argument("--parity-variants", nargs="*", metavar="VARIANT",
                     help="parity variants to run ('float32', 'float32 TF32', 'bfloat16', 'ring'; default all; none: skip)")
     ap.add_argument("--budget", type=float, default=470, help="seconds for the whole check")
