@@ -271,8 +271,8 @@ def train_step_fn(config: VGGTConfig, tc: TrainConfig, forward: Forward | None =
     config.validate()
 
     def step(state: TrainState, batch: dict) -> tuple[TrainState, dict]:
-        # the backward at the forward's precision: a custom VJP's backward (the blocked
-        # attention's) is traced here, outside `rvggt_forward`'s own precision scope
+        # the loss and the optimizer's products at the forward's precision too (the
+        # backward of the forward's custom VJPs keeps the forward's by itself)
         with precision_scope(config.dot_precision):
             return _step(state, batch)
 

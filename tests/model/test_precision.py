@@ -65,9 +65,21 @@ def test_a_bfloat16_forward_leaves_jaxs_own_precision(tiny, golden):
         assert set(_precisions(_forward_text(params, golden["images"], config))) == {"HIGHEST"}
 
 
+def test_a_gradient_taken_outside_the_forward_keeps_its_precision():
+    # the blocked attention's backward is a custom VJP, traced by jax.grad after the
+    # forward's own scope has closed: it runs at the precision its forward saw
+    config = micro_config(enable_point=False, enable_track=False)
+    params = rvggt_jax.init_params(config, 0)
+    images = jnp.zeros((1, 2, 3, 28, 28), jnp.float32)
+
+    def loss(p):
+        return rvggt_forward(p, images, config)["depth"].sum()
+
+    precisions = _precisions(jax.jit(jax.grad(loss)).lower(params).as_text())
+    assert set(precisions) == {"HIGHEST"}, {p: precisions.count(p) for p in set(precisions)}
+
+
 def test_a_float32_train_step_runs_its_backward_at_highest():
-    # the blocked attention's backward is a custom VJP, traced by value_and_grad outside
-    # the forward's own scope: the step holds the precision for it
     config = micro_config(enable_point=False, enable_track=False)
     tc = train.TrainConfig(learning_rate=1e-3, warmup_steps=1, total_steps=2)
     state = train.init_state(rvggt_jax.init_params(config, 0), tc)

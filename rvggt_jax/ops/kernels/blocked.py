@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from rvggt_jax.ops.bits import Bits16, is_16bit_float, read_buffer
 from rvggt_jax.ops.chunks import dynamic_index
 from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.precision import precision_scope
 
 # Bytes of one logits block: a block that stays in L2/L3 and gives the value matmul
 # hundreds of rows (measurements: docs/benchmarks.md).
@@ -115,13 +116,20 @@ def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Ar
     the attention op passes False for the programs it compiles for other platforms).
     Gradients: to q, k, v and key_bias (in their dtypes), from both outputs."""
     out_dtype = None if out_dtype is None else jnp.dtype(out_dtype)
-    return _attention(q, k, v, key_bias, float(scale), int(block_bytes), out_dtype, bool(bits))
+    # the matmul precision in force here: the backward, traced wherever the gradient is
+    # taken, runs at the forward's (ops/precision.py)
+    precision = jax.config.jax_default_matmul_precision
+    return _attention(q, k, v, key_bias, float(scale), int(block_bytes), out_dtype, bool(bits), precision)
 
 
-_attention = jax.custom_vjp(_forward, nondiff_argnums=(4, 5, 6, 7))
+def _forward_at(q, k, v, key_bias, scale, block_bytes, out_dtype, bits, precision):
+    return _forward(q, k, v, key_bias, scale, block_bytes, out_dtype, bits)
 
 
-def _attention_fwd(q, k, v, key_bias, scale, block_bytes, out_dtype, bits):
+_attention = jax.custom_vjp(_forward_at, nondiff_argnums=(4, 5, 6, 7, 8))
+
+
+def _attention_fwd(q, k, v, key_bias, scale, block_bytes, out_dtype, bits, precision):
     out, lse = _forward(q, k, v, key_bias, scale, block_bytes, out_dtype, bits)
     return (out, lse), (q, k, v, key_bias, out, lse)
 
@@ -156,7 +164,13 @@ def block_grads(qs: jax.Array, kt: jax.Array, v: jax.Array, bias: jax.Array | No
     return dqs, dk, dv, ds
 
 
-def _attention_bwd(scale, block_bytes, out_dtype, bits, res, cts):
+def _attention_bwd(scale, block_bytes, out_dtype, bits, precision, res, cts):
+    """`_grads` at the forward's matmul precision."""
+    with precision_scope(precision):
+        return _grads(scale, block_bytes, out_dtype, bits, res, cts)
+
+
+def _grads(scale, block_bytes, out_dtype, bits, res, cts):
     """dq, dk, dv, d key_bias from the cotangents (d out, d lse): the forward's query
     blocks again, one (batch, head) pair at a time; dk, dv and the bias gradient of a pair
     accumulate in float32 over its query blocks (O(N d), never a [Nq, Nk] matrix beyond
