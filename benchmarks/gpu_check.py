@@ -1,6 +1,6 @@
 """One command for a lent GPU: environment, parity, speed and memory of VGGT-1B (issue 24).
 
-    python benchmarks/gpu_check.py                 # ~8 minutes on one H200 (--budget 470 s: the 300-frame pair if time is left)
+    python benchmarks/gpu_check.py                 # ~8 minutes on one H200 (--budget 470)
     python benchmarks/gpu_check.py --quick         # 100 frames only, one timed run
     python benchmarks/gpu_check.py --dense-1000    # also dense at 1000 frames (~1e17 FLOP)
     python benchmarks/gpu_check.py --smoke         # tiny layout, any machine (CPU: a few minutes)
@@ -15,7 +15,8 @@ Parts, each caught and reported (a failing part never stops the next):
    reported against 1e-2), bfloat16 within twice upstream's own bf16 deviation; the
    ring's share kernel (cuDNN with its log-sum-exp) against the blocked one, values and
    gradients.
-3. speed: `regime` at 100, 300, 1000 frames and dense at 100, 300 (VGGT-1B, no track head,
+3. speed: `regime` and dense at 100 frames, `regime` at 1000, both at 300 when the budget
+   leaves time (most wanted first; `--only` picks) (VGGT-1B, no track head,
    bf16 compute and aggregator weights, random weights, 392 x 518): trace + compile time,
    the median of timed runs after one warm-up, the device's peak bytes, XLA's plan of the
    same compiled program, and whether it calls cuDNN's flash attention (`__cudnn$fmha`).
@@ -140,9 +141,10 @@ def rel_err(ours, ref) -> float:
 
 
 def worker_parity(spec: dict) -> None:
-    """The tiny fixture's forward against upstream's golden outputs, one RESULT per variant:
-    float32 (default matmul precision: TF32 on a GPU may not reach 1e-4), float32 at
-    "highest", bfloat16 (aggregator weights in bf16, heads float32)."""
+    """The tiny fixture's forward against upstream's golden outputs, one RESULT per variant
+    (spec "variants": which; default all): float32 at the config's precision ("highest"),
+    float32 at the platform's default ("float32 TF32": TF32 on a GPU does not reach 1e-4),
+    bfloat16 (aggregator weights in bf16, heads float32), then "ring": the ring's kernel."""
     import jax
     from safetensors.numpy import load_file
 

@@ -148,9 +148,9 @@ class VGGTConfig:
     # aggregator's bf16 ones are bf16 whatever this says). None follows `dtype`: "highest"
     # for float32, so that float32 is float32 on every platform (a GPU's default TF32 moved
     # the tiny fixture's outputs by 1.5e-3 on an H200, against 2e-6 at "highest",
-    # docs/benchmarks.md "GPU check"; a CPU computes float32 either way), and "default"
-    # JAX's default for bfloat16, whose float32 heads then take the platform's fast
-    # matmuls (TF32 on a GPU) unless `jax_default_matmul_precision` says otherwise.
+    # docs/benchmarks.md "GPU check"; a CPU computes float32 either way), and JAX's own
+    # setting for bfloat16, whose float32 heads then take the platform's fast matmuls
+    # (TF32 on a GPU) unless `jax_default_matmul_precision` says otherwise.
     matmul_precision: str | None = None
 
     def __post_init__(self):
@@ -237,7 +237,7 @@ class VGGTConfig:
 
     def with_precision(self, precision: str | None) -> "VGGTConfig":
         """A copy whose float32 matmuls run at `precision` (one of MATMUL_PRECISIONS; None
-        follows the dtype: "highest" for float32, "default" for bfloat16)."""
+        follows the dtype: "highest" for float32, JAX's own setting for bfloat16)."""
         return replace(self, matmul_precision=precision).validate()
 
     def with_remat(self, remat: bool | str = True) -> "VGGTConfig":

@@ -18,8 +18,8 @@ import numpy as np
 
 from rvggt_jax.model.aggregator import aggregator_forward
 from rvggt_jax.ops.attention import kernel_scope
-from rvggt_jax.ops.precision import precision_scope
 from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.precision import precision_scope
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.model.heads.camera import camera_head
