@@ -21,8 +21,8 @@ Parts, each caught and reported (a failing part never stops the next):
    the median of timed runs after one warm-up, the device's peak bytes, XLA's plan of the
    same compiled program, and whether it calls cuDNN's flash attention (`__cudnn$fmha`).
    Each program runs in a fresh process (JAX cannot reset a device's peak) with a timeout.
-   On a GPU compiling allocates on the device (XLA's autotuner: 38-40 GB of peak on an
-   H200 whatever the program), so each program is compiled into JAX's persistent cache
+   On a GPU compiling allocates on the device (38-40 GB of peak on an H200 whatever the
+   program; most likely XLA's autotuner), so each program is compiled into JAX's persistent cache
    by one process and loaded and run by the next, whose peak is the run's alone (the
    peak before the runs is reported too; --one-process does both in one).
 4. plan: the same programs compiled deviceless for the H200 (`rvggt_jax.planning.targets`'
@@ -235,7 +235,7 @@ def worker_run(spec: dict) -> None:
     compiled = jax.jit(rvggt_jax.rvggt_forward).lower(params, images, cfg).compile()
     dev = jax.devices()[0]
     # the device's peak so far: parameters, images and whatever compiling allocated
-    # (XLA:GPU's autotuner runs candidate kernels on the device)
+    # (on a GPU most likely XLA's autotuner, which runs candidate kernels there)
     emit(stage="compiled", compile_s=time.perf_counter() - t0, plan_bytes=plan_bytes(compiled),
          platform=dev.platform, peak_after_compile=(dev.memory_stats() or {}).get("peak_bytes_in_use"),
          **kernel_of(compiled.as_text()))
@@ -551,7 +551,7 @@ def main(argv=None) -> None:
     ap.add_argument("--only", nargs="+", metavar="PRESET@FRAMES", help="these programs only, e.g. regime@1000")
     ap.add_argument("--one-process", dest="runtime_peak", action="store_false",
                     help="compile and run each program in one process (its peak then holds what compiling "
-                         "allocated: 38-40 GB on an H200, XLA:GPU's autotuning); by default each program is "
+                         "allocated: 38-40 GB on an H200, most likely XLA:GPU's autotuning); by default each program is "
                          "compiled into JAX's persistent cache by one process and loaded and run by the next")
     ap.add_argument("--cache-dir", help="the persistent cache the programs pass through (default: in the temp folder)")
     ap.add_argument("--parity-variants", nargs="*", metavar="VARIANT",
