@@ -171,7 +171,7 @@ class VGGTConfig:
     @property
     def dot_precision(self) -> str | None:
         """The precision of float32 matmuls (`matmul_precision`, else by `dtype`) that
-        `rvggt_forward` and a train step run under (`ops.precision.precision_scope`); None
+        `rvggt_forward` runs under (`ops.precision.precision_scope`; its gradients too); None
         leaves JAX's own default (`jax_default_matmul_precision`, the platform's when unset)."""
         if self.matmul_precision is not None:
             return self.matmul_precision

@@ -1,11 +1,13 @@
-"""The precision of float32 matmuls and convolutions inside a forward or a train step.
+"""The precision of float32 matmuls and convolutions inside a forward.
 
 JAX resolves a matmul's precision when it is traced (`lax.dot_general` and
 `lax.conv_general_dilated` read `jax_default_matmul_precision` when given none), so one
-scope around the traced function reaches every float32 product in it, custom VJPs'
-backwards included when the scope also holds the gradient's trace. A CPU computes float32
-products in full at every precision; an NVIDIA GPU's "default" is TF32 and a TPU's one
-bf16 pass, which is why `VGGTConfig.dot_precision` is "highest" for float32 configs.
+scope around the traced forward reaches every float32 product in it. Their transposes in
+a gradient keep the precision their forward was traced with; a custom VJP's backward is
+traced later, outside the scope, so it carries its forward's precision itself (the blocked
+attention's: `kernels/blocked.py`). A CPU computes float32 products in full at every
+precision; an NVIDIA GPU's "default" is TF32 and a TPU's one bf16 pass, which is why
+`VGGTConfig.dot_precision` is "highest" for float32 configs.
 """
 
 from __future__ import annotations

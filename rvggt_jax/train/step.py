@@ -36,7 +36,6 @@ import jax.numpy as jnp
 import optax
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.ops.precision import precision_scope
 from rvggt_jax.train.losses import LossConfig, record_denominators, shared_denominators, vggt_loss
 
 TRAIN, FROZEN = "train", "frozen"
@@ -271,12 +270,6 @@ def train_step_fn(config: VGGTConfig, tc: TrainConfig, forward: Forward | None =
     config.validate()
 
     def step(state: TrainState, batch: dict) -> tuple[TrainState, dict]:
-        # the loss and the optimizer's products at the forward's precision too (the
-        # backward of the forward's custom VJPs keeps the forward's by itself)
-        with precision_scope(config.dot_precision):
-            return _step(state, batch)
-
-    def _step(state: TrainState, batch: dict) -> tuple[TrainState, dict]:
         labels = param_labels(state.params, tc.train)
         # frozen leaves as constants inside the differentiated function (`trainable_loss`):
         # their cotangents, and any backward pass or residual that only they need (the
