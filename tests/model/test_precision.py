@@ -85,7 +85,7 @@ def test_a_float32_train_step_runs_its_backward_at_highest():
     state = train.init_state(rvggt_jax.init_params(config, 0), tc)
     batch = train.stack([train.synthetic_example(2, (28, 28), seed=0)])
     step = train.make_train_step(config, tc, donate=False)
-    precisions = _precisions(step.lower(state, batch).as_text())
+    text = step.lower(state, batch).as_text(debug_info=True)
+    precisions = _precisions(text)
     assert set(precisions) == {"HIGHEST"}, {p: precisions.count(p) for p in set(precisions)}
-    assert len(precisions) > 2 * len(_precisions(
-        _forward_text(state.params, jnp.asarray(batch["images"]), config)))  # the backward is in it
+    assert "transpose(jvp(" in text  # the backward is in it
