@@ -8,8 +8,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from typing import Any
+from typing import Any, Iterator
 
 import chex
 import jax
@@ -214,8 +215,17 @@ def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_
     [B, S, 3, H, W] are this device's frames (`shards`, inside `jax.shard_map`; default
     all frames on one device) and so is every per-frame output. Every attention inside
     runs on `config.attention`'s kernel, every float32 matmul at `config.dot_precision`."""
-    with kernel_scope(config.attention), precision_scope(config.dot_precision):
+    with config_scope(config):
         return _forward_frames(params, images, config, query_points, shards)
+
+
+@contextlib.contextmanager
+def config_scope(config: VGGTConfig) -> Iterator[None]:
+    """Everything traced inside runs on `config.attention`'s kernel with its float32
+    matmuls at `config.dot_precision`: what a forward and each Flax part (`model.modules`)
+    run under."""
+    with kernel_scope(config.attention), precision_scope(config.dot_precision):
+        yield
 
 
 def _head_projections(params: Params, config: VGGTConfig, grid, with_track: bool, enabled: dict,

@@ -118,7 +118,7 @@ class Aggregator(_Part):
 
     def __call__(self, images: jax.Array, layers: Sequence[int] | None = None) -> dict[int, jax.Array]:
         from rvggt_jax.model.aggregator import aggregator_forward
-        from rvggt_jax.model.forward import InputError, check_images
+        from rvggt_jax.model.forward import InputError, check_images, config_scope
 
         config = self.config.validate()
         p = self.tree()
@@ -127,8 +127,9 @@ class Aggregator(_Part):
         bad = [i for i in keep if not (isinstance(i, int) and 0 <= i < config.depth)]
         if bad or not keep:
             raise InputError(f"layers must be aggregator layer indices in [0, {config.depth}); got {list(keep)}")
-        kept, _, _ = aggregator_forward(p, images, config, set(keep))
-        return {i: kept[i].array() for i in sorted(set(keep))}
+        with config_scope(config):
+            kept, _, _ = aggregator_forward(p, images, config, set(keep))
+            return {i: kept[i].array() for i in sorted(set(keep))}
 
 
 class CameraHead(_Part):
@@ -139,9 +140,11 @@ class CameraHead(_Part):
     TOP = "camera_head"
 
     def __call__(self, last_layer: jax.Array) -> list[jax.Array]:
+        from rvggt_jax.model.forward import config_scope
         from rvggt_jax.model.heads.camera import camera_head
 
-        return camera_head(self.tree(), last_layer[:, :, :1].astype(jnp.float32), self.config.camera_head)
+        with config_scope(self.config):
+            return camera_head(self.tree(), last_layer[:, :, :1].astype(jnp.float32), self.config.camera_head)
 
 
 class DPTHead(_Part):
@@ -159,10 +162,12 @@ class DPTHead(_Part):
         return f"{self.output}_head"
 
     def __call__(self, aggregated: Any, image_hw: tuple[int, int]) -> tuple[jax.Array, jax.Array]:
+        from rvggt_jax.model.forward import config_scope
         from rvggt_jax.model.heads.dpt import depth_head, point_head
 
         fn = depth_head if self.output == "depth" else point_head
-        return fn(self.tree(), _as_layers(aggregated), self.config.dpt_head, self.config.token_grid(image_hw))
+        with config_scope(self.config):
+            return fn(self.tree(), _as_layers(aggregated), self.config.dpt_head, self.config.token_grid(image_hw))
 
 
 class TrackHead(_Part):
@@ -174,10 +179,12 @@ class TrackHead(_Part):
     TOP = "track_head"
 
     def __call__(self, aggregated: Any, images: jax.Array, query_points: jax.Array):
+        from rvggt_jax.model.forward import config_scope
         from rvggt_jax.model.heads.track import track_head
 
-        return track_head(self.tree(), _as_layers(aggregated), self.config.track_head_config,
-                          self.config.token_grid(images.shape[-2:]), query_points)
+        with config_scope(self.config):
+            return track_head(self.tree(), _as_layers(aggregated), self.config.track_head_config,
+                              self.config.token_grid(images.shape[-2:]), query_points)
 
 
 class VGGT(nn.Module):

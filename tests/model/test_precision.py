@@ -89,3 +89,19 @@ def test_a_float32_train_step_runs_its_backward_at_highest():
     precisions = _precisions(text)
     assert set(precisions) == {"HIGHEST"}, {p: precisions.count(p) for p in set(precisions)}
     assert "transpose(jvp(" in text  # the backward is in it
+
+
+def test_the_flax_parts_run_at_their_configs_precision():
+    # each part of `model.modules` runs under its config's kernel and precision, as the
+    # whole forward does
+    from rvggt_jax.model.modules import Aggregator, DPTHead
+
+    config = micro_config(enable_point=False, enable_track=False)
+    params = rvggt_jax.init_params(config, 0)
+    images = jnp.zeros((1, 2, 3, 28, 28), jnp.float32)
+    layers = jax.eval_shape(lambda p: Aggregator(config).apply({"params": p}, images), params["aggregator"])
+    head = jax.jit(lambda p, agg: DPTHead(config, output="depth").apply({"params": p}, agg, (28, 28)))
+    for c, want in ((config, {"HIGHEST"}), (config.with_precision("default"), {"DEFAULT", "HIGHEST"})):
+        backbone = jax.jit(lambda p, x: Aggregator(c).apply({"params": p}, x))
+        assert set(_precisions(backbone.lower(params["aggregator"], images).as_text())) == want
+    assert set(_precisions(head.lower(params["depth_head"], layers).as_text())) == {"HIGHEST"}
