@@ -33,14 +33,6 @@ from benchmarks.bench_memory import small_layout  # noqa: E402
 from rvggt_jax.model.heads import dpt, resize  # noqa: E402
 
 
-def _reference(p, size, pos=None):
-    """The composition `resized_conv3x3` replaces, for every width."""
-    def plain(x):
-        y = resize.resize_bilinear_align_corners(x, size)
-        return dpt.conv2d(p, y if pos is None else y + jnp.asarray(pos))
-    return plain
-
-
 def build(variant: str, config, grid):
     """A jitted dense_heads for `variant` ("fused" or "resize-then-conv"): the reference
     swaps dpt's `resized_conv3x3` and `patchwise_levels` while tracing, so each program has one form throughout."""
@@ -48,7 +40,7 @@ def build(variant: str, config, grid):
         if variant == "fused":
             return dpt.dense_heads(p, agg, config.dpt_head, grid)
         saved = dpt.resized_conv3x3, dpt.patchwise_levels
-        dpt.resized_conv3x3, dpt.patchwise_levels = _reference, lambda params, grid_hw: {}
+        dpt.resized_conv3x3, dpt.patchwise_levels = resize.resize_then_conv3x3, lambda params, grid_hw: {}
         try:
             return dpt.dense_heads(p, agg, config.dpt_head, grid)
         finally:

@@ -71,6 +71,17 @@ def shifted_taps(in_size: int, out_size: int) -> list[tuple[np.ndarray, ...]]:
     return taps
 
 
+def resize_then_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarray | None = None
+                        ) -> Callable[[jax.Array], jax.Array]:
+    """The composition `resized_conv3x3` computes, as written: x [N, h, w, C] ->
+    conv2d(p, resize_bilinear_align_corners(x, size) + pos) (every output pixel convolved
+    at the high resolution)."""
+    def plain(x):
+        y = resize_bilinear_align_corners(x, size)
+        return conv2d(p, y if pos is None else y + jnp.asarray(pos, y.dtype))
+    return plain
+
+
 def resized_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarray | None = None
                     ) -> Callable[[jax.Array], jax.Array]:
     """x [N, h, w, C] -> conv3x3(resize_bilinear_align_corners(x, size) + pos) + bias
@@ -92,10 +103,7 @@ def resized_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarra
     height, width = size
 
     if c < o:
-        def plain(x):
-            y = resize_bilinear_align_corners(x, size)
-            return conv2d(p, y if pos is None else y + jnp.asarray(pos, y.dtype))
-        return plain
+        return resize_then_conv3x3(p, size, pos)
 
     if pos is None:
         offset = p["bias"] if "bias" in p else jnp.zeros((o,), kernel.dtype)
