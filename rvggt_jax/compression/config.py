@@ -136,6 +136,12 @@ class CompressionConfig:
       anchor             frame 0 keeps all its K/V.
       phase_shift        per-frame offsets r_f = (f div t) mod t, c_f = f mod t.
       kv_protect_saliency  Psi-protected patches are always kept in K/V (paper text).
+      kv_capacity        the data-dependent K/V slots (unmerged src on the sub-grid) a
+                         merging layer attends with, as a multiple of their expected
+                         count (at most the bound, every unmerged src that can be on the
+                         sub-grid): a sequence with more filled runs the layer's attention
+                         with every slot (a second branch, same values). On one device;
+                         frame-sharded runs attend with every slot.
 
     Layer kinds
       frame_layers       global attention restricted to each frame (AVGGT's G2F).
@@ -174,6 +180,7 @@ class CompressionConfig:
     anchor: bool = True
     phase_shift: bool = True
     kv_protect_saliency: bool = False
+    kv_capacity: float = 1.5
     frame_layers: tuple[int, ...] = ()
     dense_layers: tuple[int, ...] = ()
     head_pad_multiple: int = 1
@@ -193,6 +200,8 @@ class CompressionConfig:
             raise ValueError(f"alpha must be in [0, 1]; got {self.alpha}")
         if not self.duplicate_capacity >= 0.0:
             raise ValueError(f"duplicate_capacity must be >= 0; got {self.duplicate_capacity}")
+        if not self.kv_capacity >= 0.0:
+            raise ValueError(f"kv_capacity must be >= 0; got {self.kv_capacity}")
         if self.head_pad_multiple < 1:
             raise ValueError("head_pad_multiple must be >= 1")
         if not isinstance(self.merge_head_groups, int) or self.merge_head_groups < 1:

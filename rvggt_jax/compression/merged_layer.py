@@ -9,7 +9,8 @@ after another (`head_groups`, `CompressionConfig.merge_head_groups`), the group 
 q, k and v (`merged_qkv`: summed chunk by chunk as they are projected, no full-sequence
 Q, K or V), the keys (`kept_keys`: all merged rows, or the K/V-downsampled slots, plus
 the authors' duplicated protected dst) and the attention (`attend`: one device, or
-around the ring); the unmerge inside the block. With `duplicate_protected`, the
+around the ring; on one device with the dynamic slots a sequence typically fills,
+`within_capacity`); the unmerge inside the block. With `duplicate_protected`, the
 protected tokens' own (un-merged) queries attend too, and each protected dst token takes
 its own row, as the authors' unmerge gives it (`protected_queries`, `own_rows`): in
 `n_dup` rows after the merged ones, or, when the plan says `protected_rows`, in the U
@@ -83,11 +84,15 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
         x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, heads, after)
         if plan.protected_rows:
             qm, km, vm = own_qkv(p_heads, x, pos, (qm, km, vm), share, plan, config, state, heads)
-        keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, heads)
-        if plan.n_dup_all:
-            qm = jnp.concatenate([qm, protected_queries(p_heads, x, pos, plan, config, state, heads)], axis=1)
-            return x, attend_duplicates(qm, keys, plan, config, state)
-        return x, attend(qm, keys, plan, config, state.shards)
+
+        def attend_slots(slots, dyn):
+            keys = kept_keys(p_heads, x, pos, km, vm, match, share, plan, config, state, slots, heads)
+            if plan.n_dup_all:
+                q = jnp.concatenate([qm, protected_queries(p_heads, x, pos, plan, config, state, heads)], axis=1)
+                return attend_duplicates(q, keys, plan, config, state, dyn)
+            return attend(qm, keys, plan, config, state.shards, dyn=dyn)
+
+        return x, within_capacity(attend_slots, slots, plan, state.shards)
 
     if len(groups) == 1:
         x, out = group_attention(x, p_block, config.num_heads, match.group)
@@ -224,6 +229,21 @@ def key_slots(plan: LayerPlan, config, match: Match, state: State) -> tuple[tupl
     return (sel, valid), state
 
 
+def within_capacity(attend_slots, slots: tuple | None, plan: LayerPlan, shards: FrameShards) -> jax.Array:
+    """`attend_slots(slots, dyn)` with the layer's first `n_dyn_cap` dynamic K/V slots
+    when this data fills no more of them (compacted: the filled ones come first), else
+    with all `n_dyn` (`lax.cond`): the slots left out are empty, so both branches give
+    the same values, and the short one attends with the slots a sequence typically fills.
+    Every slot on a layer without dynamic slots, and over devices (the ring's keys are
+    each device's merged rows)."""
+    if slots is None or shards.sharded or plan.n_dyn_cap >= plan.n_dyn:
+        return attend_slots(slots, plan.n_dyn)
+    sel, valid = slots
+    m = plan.n_fixed + plan.n_dyn_cap
+    return jax.lax.cond(jnp.any(valid[:, m]), lambda: attend_slots(slots, plan.n_dyn),
+                        lambda: attend_slots((sel[:, :m], valid[:, :m]), plan.n_dyn_cap))
+
+
 def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Array, vm: jax.Array, match: Match,
               share: MergedRows, plan: LayerPlan, config, state: State, slots: tuple | None, heads: int) -> Keys:
     """The keys of the layer for the heads of km, vm [B, rows, heads, D]: every merged row
@@ -317,36 +337,39 @@ def own_rows(plan: LayerPlan, x: jax.Array, state: State) -> jax.Array | None:
     return jnp.full((b, n), -1, jnp.int32).at[jnp.arange(b)[:, None], jnp.where(mine, rel, n)].set(slot, mode="drop")
 
 
-def attend_duplicates(qm: jax.Array, keys: Keys, plan: LayerPlan, config, state: State) -> jax.Array:
+def attend_duplicates(qm: jax.Array, keys: Keys, plan: LayerPlan, config, state: State, dyn: int | None = None
+                      ) -> jax.Array:
     """`attend` for a layer with the protected tokens' own rows: qm [B, rows + n_dup_all,
     H, D], keys ending in their n_dup_all slots (dst first) -> [B, rows + n_dup_all, H, D].
     On one device the rows and slots beyond n_dup are left out (their outputs 0: they are
     protected src, whose own rows nobody reads, and whose slots are masked); under
     saliency protection a sequence with more than n_dup protected dst takes every row
-    (`lax.cond`: the values do not depend on the branch). Over devices all of them."""
+    (`lax.cond`: the values do not depend on the branch). Over devices all of them.
+    `dyn`: the dynamic K/V slots among the keys (`within_capacity`)."""
     extra = plan.n_dup_all - plan.n_dup
     if state.shards.sharded or not extra:
-        return attend(qm, keys, plan, config, state.shards, plan.n_dup_all)
+        return attend(qm, keys, plan, config, state.shards, plan.n_dup_all, dyn)
 
     def capped(qm, keys):
         m = keys.k.shape[1] - extra
         cut = Keys(keys.k[:, :m], keys.v[:, :m], keys.sizes[:, :m], keys.valid[:, :m], None)
-        out = attend(qm[:, :qm.shape[1] - extra], cut, plan, config, state.shards)
+        out = attend(qm[:, :qm.shape[1] - extra], cut, plan, config, state.shards, dyn=dyn)
         return jnp.pad(out, ((0, 0), (0, extra), (0, 0), (0, 0)))
 
     if config.compression.protect == "stride":  # the protected dst are the first n_dup, statically
         return capped(qm, keys)
     is_dst = jnp.take(jnp.asarray(plan.partition.is_dst), state.protected_pos, mode="clip")
     overflow = jnp.any(jnp.sum(is_dst, axis=1) > plan.n_dup)
-    return jax.lax.cond(overflow, lambda q, k: attend(q, k, plan, config, state.shards, plan.n_dup_all), capped,
-                        qm, keys)
+    return jax.lax.cond(overflow, lambda q, k: attend(q, k, plan, config, state.shards, plan.n_dup_all, dyn),
+                        capped, qm, keys)
 
 
-def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards, dup: int | None = None
-           ) -> jax.Array:
+def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards, dup: int | None = None,
+           dyn: int | None = None) -> jax.Array:
     """The merged queries [B, rows, H, D] (then, with `n_dup`, the protected tokens' own
-    queries [B, dup, H, D], dup defaulting to n_dup) against the layer's keys, with the
-    size bias log g (and the invalid slots masked) -> [B, rows (+ dup), H, D]."""
+    queries [B, dup, H, D], dup defaulting to n_dup) against the layer's keys (`dyn`
+    dynamic slots among them, default n_dyn), with the size bias log g (and the invalid
+    slots masked) -> [B, rows (+ dup), H, D]."""
     comp = config.compression
     dup = plan.n_dup if dup is None else dup
 
@@ -365,7 +388,7 @@ def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShar
         return ring_attention(with_dependency(qm, keys.v), with_dependency(keys.k, keys.v), keys.v, log_g, shards,
                               extra)
     log_g = bias(keys.sizes, keys.valid, plan.masked) if plan.size_column else None
-    check_shapes(plan, comp, qm.shape[1] - dup, keys.k, log_g, dup)
+    check_shapes(plan, comp, qm.shape[1] - dup, keys.k, log_g, dup, dyn)
     return attention(qm, keys.k, keys.v, log_g)
 
 

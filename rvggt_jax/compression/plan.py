@@ -7,9 +7,11 @@ data-dependent)], N_m = N_dst + U = N - r; under saliency protection up to r_max
 the U rows are empty (their src merged after all: the authors' count, `r_max`). K/V
 slots: the dst kept for static reasons (`kv_fixed`, static indices), then `n_dyn` slots
 compacted from the data-dependent candidates (unmerged src on the sub-grid;
-Psi-protected tokens in the paper variant),
-then `n_dup` slots for duplicates of the protected dst tokens (authors' artefact, off by
-default; a slot whose protected token is a src stays empty); with them, `n_dup` query
+Psi-protected tokens in the paper variant; filled ones first: on one device a layer
+attends with the first `n_dyn_cap`, `kv_capacity` times the expected count, unless this
+data fills more), then `n_dup` slots for duplicates of the protected dst tokens
+(authors' artefact, off by default; a slot whose protected token is a src stays empty);
+with them, `n_dup` query
 rows after the N_m merged ones (the protected tokens' own queries, dst first: `n_dup`
 covers the protected dst, exactly under stride protection, `duplicate_capacity` times
 their expected count under saliency protection, where a sequence with more takes all
@@ -87,6 +89,11 @@ class LayerPlan:
     # than n_dup of them are dst (saliency protection; `duplicate_capacity`), the layer
     # attends with all n_dup_all. Rows of the output: N_m + n_dup_all.
     n_dup_all: int = 0
+    # The dynamic K/V slots a merging layer attends with on one device (`kv_capacity` times
+    # their expected count, at most n_dyn): the filled ones come first, and a sequence with
+    # more than this many filled attends with all n_dyn (`lax.cond`, same values).
+    # n_dyn for the other kinds (no capacity).
+    n_dyn_cap: int = 0
     # The static index sets of a compressed layer (None for DENSE and FRAME), computed with
     # the plan so that the block reads them from it (not compared: they follow from the
     # fields above and the configuration).
@@ -180,7 +187,8 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
         # Expected protected non-kept patches: protection independent of the grid.
         exp_dyn = p_max * (1.0 - n_fixed / N) if kv_keeps_protected else 0.0
         return LayerPlan(kind=LayerKind.KV, r=0, n_dst=N, n_src=0, n_unm=0, n_query=N, kv_mode="select",
-                         n_fixed=n_fixed, n_dyn=n_dyn, n_dup=0, n_kv=n_fixed + n_dyn, expected_dyn=exp_dyn,
+                         n_fixed=n_fixed, n_dyn=n_dyn, n_dyn_cap=n_dyn, n_dup=0, n_kv=n_fixed + n_dyn,
+                         expected_dyn=exp_dyn,
                          expected_dup=0.0, masked=n_dyn > 0, size_column=n_dyn > 0, match="none",
                          match_key=None, r_frame=0, match_pairs=0, fixed_kv=_ro(np.flatnonzero(keep)),
                          **index, **base)
@@ -234,12 +242,16 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
             n_dyn = min(pool, n_dyn + p_max)
             exp_dyn = min(float(n_dyn), exp_dyn + p_max * (1.0 - (n_fixed + e_src) / max(n_dst + n_src, 1)))
         dup_masked = not kv_keeps_protected
+    # the slots this data fills are about exp_dyn: attend with a margin over that (the
+    # filled slots come first; more filled than this takes the layer's second branch)
+    n_dyn_cap = min(n_dyn, 8 * math.ceil(comp.kv_capacity * exp_dyn / 8))
     exp_dup = 0.0
     if n_dup:
         exp_dup = _expected_duplicates(comp, part, keep if dup_masked else None, geom)
     masked = n_dyn > 0 or n_dup > 0 or r_max > r
     return LayerPlan(kind=LayerKind.MERGE, r=r, n_dst=n_dst, n_src=n_src, n_unm=U, n_query=n_query,
-                     kv_mode=kv_mode, n_fixed=n_fixed, n_dyn=n_dyn, n_dup=n_dup, n_kv=n_fixed + n_dyn + n_dup,
+                     kv_mode=kv_mode, n_fixed=n_fixed, n_dyn=n_dyn, n_dyn_cap=n_dyn_cap, n_dup=n_dup,
+                     n_kv=n_fixed + n_dyn + n_dup,
                      expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
                      size_column=masked or comp.size_bias,
                      match=match, match_key=key, r_frame=r_f, match_pairs=pairs, r_max=r_max,
@@ -255,13 +267,14 @@ def padded_head_dim(d: int, size_column: bool, multiple: int) -> int:
     return int(math.ceil((d + 1) / multiple) * multiple)
 
 
-def check_shapes(plan: LayerPlan, comp: CompressionConfig, queries: int, keys, log_g, dup: int | None = None
-                 ) -> None:
+def check_shapes(plan: LayerPlan, comp: CompressionConfig, queries: int, keys, log_g, dup: int | None = None,
+                 dyn: int | None = None) -> None:
     """At trace time: the attention's queries, K/V slots (keys [B, M, H, D]) and folded head
     dimension (log_g: the size bias, or None) are the plan's (what the cost model reads);
-    `dup`: the duplicate slots attended (default n_dup; n_dup_all in the overflow branch)."""
+    `dup`: the duplicate slots attended (default n_dup; n_dup_all in the overflow branch);
+    `dyn`: the dynamic slots attended (default n_dyn; n_dyn_cap in the capacity branch)."""
     d = keys.shape[-1]
-    n_kv = plan.n_kv - plan.n_dup + (plan.n_dup if dup is None else dup)
+    n_kv = plan.n_fixed + (plan.n_dyn if dyn is None else dyn) + (plan.n_dup if dup is None else dup)
     want = (plan.n_query, n_kv, padded_head_dim(d, plan.size_column, comp.head_pad_multiple))
     got = (queries, keys.shape[1], padded_head_dim(d, log_g is not None, comp.head_pad_multiple))
     if got != want:

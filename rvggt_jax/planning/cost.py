@@ -14,7 +14,9 @@ What is counted (FLOPs, a multiply-add = 2, batch 1 unless `batch` is given):
     all N tokens);
   * attention matmuls: 2 * Nq * Nk * D_qk + 2 * Nq * Nk * D_v per head, with D_qk the
     folded head dimension (d + 1 padded, when the size column is used) and Nk the K/V
-    *slots* (what is computed, empty slots included);
+    *slots* (what is computed, empty slots included; of the data-dependent ones, the
+    `kv_capacity` a layer attends with unless a sequence fills more: `kv_dynamic`, the
+    bound in `kv_dynamic_bound`);
   * matching: 2 * (src x dst pairs) * C for the cosine similarities at the layers that
     compute a match (cached layers cost nothing);
   * frame blocks (always dense) and the global blocks; optionally the DINO patch embed.
@@ -96,20 +98,22 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
             lin = _block_linear_flops(N, N, N, c, hidden)
             fixed, dyn, dup, exp_fill = L, 0, 0, float(L)
         else:
-            # (with duplicate_protected, the protected tokens' own queries attend too)
-            q, kv = plan.n_query + plan.n_dup, plan.n_kv
+            # (with duplicate_protected, the protected tokens' own queries attend too; the
+            # dynamic K/V slots: the capacity a sequence attends with unless it fills more)
+            q, kv = plan.n_query + plan.n_dup, plan.n_kv - plan.n_dyn + plan.n_dyn_cap
             dqk = padded_head_dim(d, plan.size_column, comp.head_pad_multiple)
             dv = d if comp.head_pad_multiple == 1 or not plan.size_column else dqk
             attn = _attn_flops(q, kv, heads, dqk, dv)
             # K/V-only layers project K and V for the kept tokens alone
             lin = _block_linear_flops(N, q, N, c, hidden, rows_kv=kv if plan.kind == LayerKind.KV else N)
-            fixed, dyn, dup = plan.n_fixed, plan.n_dyn, plan.n_dup
+            fixed, dyn, dup = plan.n_fixed, plan.n_dyn_cap, plan.n_dup
             exp_fill = plan.n_fixed + plan.expected_dyn + plan.expected_dup
         match = 2 * plan.match_pairs * c if plan.match == "compute" else 0
         total = attn + lin + match
         rows.append(dict(
             layer=layer, kind=plan.kind, tile=plan.tile, merged=plan.r, queries=q, kv_slots=kv, kv_fixed=fixed,
-            kv_dynamic=dyn, kv_duplicates=dup, kv_filled_expected=exp_fill, head_dim_qk=dqk,
+            kv_dynamic=dyn, kv_dynamic_bound=plan.n_dyn, kv_duplicates=dup, kv_filled_expected=exp_fill,
+            head_dim_qk=dqk,
             match=plan.match, match_key=plan.match_key,
             attention_flops=batch * attn, match_flops=batch * match, flops=batch * total,
             dense_attention_flops=batch * dense_global_attn, dense_flops=batch * dense_global,

@@ -284,6 +284,47 @@ def test_duplicate_capacity_branches_give_the_same_block(block_params):
     assert cost_report(cfg, S, H * 14, W * 14)["layers"][0]["queries"] == plans[1e3].n_query + layer_plan(cc, 0, geom).n_dup
 
 
+@pytest.mark.parametrize("duplicates", [False, True])
+def test_kv_capacity_branches_give_the_same_block(block_params, duplicates):
+    """A K/V-downsampled merging layer attends with `n_dyn_cap` dynamic slots
+    (`kv_capacity` times their expected fill) and a sequence that fills more takes all
+    `n_dyn` (`lax.cond`). Capacity 0 (always the full branch: this data fills some
+    slots), one that holds this data's filled slots (the short branch) and one past the
+    bound (no branch) give the same block, with and without the authors' duplicates
+    (whose own capacity branch composes with this one); the float64 reference checks
+    the default (`test_block_equals_float64_reference`)."""
+    geom = Geometry(S, H, W, NS)
+    x, sal = _data(0)  # (fills 4 and 1 of the 9 dynamic slots of layer 0)
+    pos = global_positions(S, H, W)
+    base = BASE.with_compression("regime", duplicate_protected=duplicates)
+
+    def run(cap):
+        cfg = dataclasses.replace(base, compression=dataclasses.replace(base.compression, kv_capacity=float(cap)))
+        return cfg, jax.jit(lambda x, s: global_block(block_params, x, pos, 0, cfg,
+                                                      init_state(cfg.compression, s, geom)))(x, sal)
+
+    plan = layer_plan(base.compression, 0, geom)
+    assert plan.kv_mode == "select" and plan.n_dyn > 0
+    (out_full, state), outs = run(1e3)[1], {}
+    (_, ok), = state.kv.values()
+    filled = int(np.asarray(ok).sum(axis=1).max())
+    assert 0 < filled < plan.n_dyn
+    for cap in (0.0, 1e3):
+        cfg, (outs[cap], _) = run(cap)
+        p = layer_plan(cfg.compression, 0, geom)
+        assert (p.n_dyn_cap == 0) if cap == 0 else (p.n_dyn_cap == p.n_dyn)
+    for cap in np.linspace(0.1, 6.0, 60):  # a capacity that holds this data's filled slots, short of all
+        p = layer_plan(dataclasses.replace(base.compression, kv_capacity=float(cap)), 0, geom)
+        if filled <= p.n_dyn_cap < p.n_dyn:
+            break
+    else:
+        pytest.skip("no capacity between this data's filled slots and the bound")
+    cfg, (outs["short"], _) = run(cap)
+    assert rel_err(outs[0.0], outs[1e3]) <= 1e-6 and rel_err(outs["short"], outs[1e3]) <= 1e-6
+    row = cost_report(cfg, S, H * 14, W * 14)["layers"][0]
+    assert row["kv_slots"] == plan.n_fixed + p.n_dyn_cap + plan.n_dup and row["kv_dynamic_bound"] == plan.n_dyn
+
+
 def test_frame_layers_attend_within_each_frame(block_params):
     cfg = BASE.with_compression("avggt")
     x, sal = _data(4)
@@ -382,7 +423,9 @@ def test_cost_model_agrees_with_traced_shapes(name, block_params):
         if plan.kind in ("dense", "frame"):
             want = (plan.n_query, plan.n_kv, d) if plan.kind == "dense" else (plan.per_frame, plan.per_frame, d)
         else:
-            want = (plan.n_query, plan.n_kv, padded_head_dim(d, plan.size_column, cfg.compression.head_pad_multiple))
+            # (the K/V slots a sequence attends with unless it fills more: the capacity)
+            want = (plan.n_query, plan.n_kv - plan.n_dyn + plan.n_dyn_cap,
+                    padded_head_dim(d, plan.size_column, cfg.compression.head_pad_multiple))
         assert (row["queries"], row["kv_slots"], row["head_dim_qk"]) == want, (name, row["layer"])
 
 
@@ -401,7 +444,7 @@ def test_block_refuses_shapes_that_differ_from_its_plan(block_params, monkeypatc
     true_plan = layer_plan
     monkeypatch.setattr(block_mod, "layer_plan",
                         lambda comp, layer, g: dataclasses.replace(true_plan(comp, layer, g),
-                                                                   n_kv=true_plan(comp, layer, g).n_kv + 1))
+                                                                   n_fixed=true_plan(comp, layer, g).n_fixed + 1))
     with pytest.raises(AssertionError, match="the plan says"):
         jax.eval_shape(lambda x: global_block(block_params, x, pos, 0, cfg, state)[0], x)
 
