@@ -105,9 +105,11 @@ def trunk_forward(params, tokens: jax.Array, saliency: jax.Array, config: VGGTCo
 
 
 def kv_fill(config: VGGTConfig, tokens, saliency, params, grid_hw) -> float:
-    """Measured fraction of the K/V slots that hold a key (filled / allocated) over all
-    compressed global layers of one forward: the dynamic slots' validity is read from
-    the state (cached matches) or recomputed exactly as the block does (uncached)."""
+    """Measured fraction of the K/V slots attended that hold a key (filled / attended)
+    over all compressed global layers of one forward: the dynamic slots' validity is read
+    from the state (cached matches) or recomputed exactly as the block does (uncached).
+    A merging layer attends with its capacity (`n_dyn_cap` dynamic slots) unless the
+    sequence fills more (then with all `n_dyn`: such layers are printed)."""
     if config.compression.is_dense:
         return 1.0
     from rvggt_jax.compression import kv as kv_lib
@@ -144,14 +146,20 @@ def kv_fill(config: VGGTConfig, tokens, saliency, params, grid_hw) -> float:
             if dyn and plan.match_key is not None:
                 ok = state.kv[plan.match_key, plan.tile].valid
             if dyn:
-                filled.append(plan.n_fixed + jnp.sum(ok) / b)
+                filled.append((plan.n_fixed + jnp.sum(ok) / b, jnp.max(jnp.sum(ok, axis=1))))
             elif plan.kind in ("merge", "kv"):
-                filled.append(jnp.float32(plan.n_kv))
+                filled.append((jnp.float32(plan.n_kv), jnp.int32(0)))
         return filled
 
-    filled = [float(f) for f in run(params, tokens, saliency)]
-    total = sum(pl.n_kv for pl in plans if pl.kind in ("merge", "kv"))
-    return sum(filled) / total if total else 1.0
+    filled, total = 0.0, 0
+    for plan, (f, most) in zip([pl for pl in plans if pl.kind in ("merge", "kv")], run(params, tokens, saliency)):
+        filled += float(f)
+        over = int(most) > plan.n_dyn_cap
+        if over:
+            print(f"  layer {plan.layer}: {int(most)} dynamic K/V slots filled, over its capacity {plan.n_dyn_cap} "
+                  f"(attends with all {plan.n_dyn})", flush=True)
+        total += plan.n_kv - plan.n_dyn + (plan.n_dyn if over else plan.n_dyn_cap)
+    return filled / total if total else 1.0
 
 
 def peak_rss_mb() -> float:

@@ -152,6 +152,26 @@ def _expected_protected_kept(keep: np.ndarray, geom: Geometry, count: int) -> fl
     return count * float(keep[later_patches].mean()) if later_patches.size else 0.0
 
 
+def _merged_kv_slots(part: Partition, keep: np.ndarray, U: int, geom: Geometry, p_max: int, protected_rows: bool,
+                     kv_keeps_protected: bool) -> tuple[int, int, float]:
+    """(n_fixed, n_dyn, expected filled dynamic slots) of a K/V-downsampled merging layer:
+    the kept dst (static), and the bound on the unmerged src (or protected rows, or
+    protected tokens) on the grid, with the count expected to be filled."""
+    n_dst, n_src = part.dst_pos.size, part.src_pos.size
+    n_fixed = int(keep[part.dst_pos].sum())
+    e_src = int(keep[part.src_pos].sum())
+    n_dyn = min(U, e_src)
+    exp_dyn = U * e_src / max(n_src, 1)
+    if protected_rows:  # the rows' tokens are dst or src: any of them may be on the grid
+        n_dyn = U
+        exp_dyn = _expected_protected_kept(keep, geom, p_max)
+    if kv_keeps_protected:
+        pool = U + (n_dst - n_fixed)
+        n_dyn = min(pool, n_dyn + p_max)
+        exp_dyn = min(float(n_dyn), exp_dyn + p_max * (1.0 - (n_fixed + e_src) / max(n_dst + n_src, 1)))
+    return n_fixed, n_dyn, exp_dyn
+
+
 @functools.lru_cache(maxsize=4096)
 def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan:
     """The static plan of global layer `layer` over a sequence of shape `geom`."""
@@ -227,21 +247,10 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
         n_dup = min(n_dup_all, 8 * math.ceil(comp.duplicate_capacity * expected / 8))
     if tile == (1, 1):
         kv_mode, n_fixed, n_dyn, exp_dyn = "all", n_query, 0, 0.0
-        dup_masked = False
     else:
         kv_mode = "select"
-        n_fixed = int(keep[part.dst_pos].sum())
-        e_src = int(keep[part.src_pos].sum())
-        n_dyn = min(U, e_src)
-        exp_dyn = U * e_src / max(n_src, 1)
-        if protected_rows:  # the rows' tokens are dst or src: any of them may be on the grid
-            n_dyn = U
-            exp_dyn = _expected_protected_kept(keep, geom, p_max)
-        if kv_keeps_protected:
-            pool = U + (n_dst - n_fixed)
-            n_dyn = min(pool, n_dyn + p_max)
-            exp_dyn = min(float(n_dyn), exp_dyn + p_max * (1.0 - (n_fixed + e_src) / max(n_dst + n_src, 1)))
-        dup_masked = not kv_keeps_protected
+        n_fixed, n_dyn, exp_dyn = _merged_kv_slots(part, keep, U, geom, p_max, protected_rows, kv_keeps_protected)
+    dup_masked = tile != (1, 1) and not kv_keeps_protected
     # the slots this data fills are about exp_dyn: attend with a margin over that (the
     # filled slots come first; more filled than this takes the layer's second branch)
     n_dyn_cap = min(n_dyn, 8 * math.ceil(comp.kv_capacity * exp_dyn / 8))
