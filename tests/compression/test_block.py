@@ -305,14 +305,14 @@ def test_kv_capacity_branches_give_the_same_block(block_params, duplicates):
 
     plan = layer_plan(base.compression, 0, geom)
     assert plan.kv_mode == "select" and plan.n_dyn > 0
-    (out_full, state), outs = run(1e3)[1], {}
+    outs = {}
+    for cap in (1e3, 0.0):
+        cfg, (outs[cap], state) = run(cap)
+        p = layer_plan(cfg.compression, 0, geom)
+        assert (p.n_dyn_cap == 0) if cap == 0 else (p.n_dyn_cap == p.n_dyn)
     (_, ok), = state.kv.values()
     filled = int(np.asarray(ok).sum(axis=1).max())
     assert 0 < filled < plan.n_dyn
-    for cap in (0.0, 1e3):
-        cfg, (outs[cap], _) = run(cap)
-        p = layer_plan(cfg.compression, 0, geom)
-        assert (p.n_dyn_cap == 0) if cap == 0 else (p.n_dyn_cap == p.n_dyn)
     for cap in np.linspace(0.1, 6.0, 60):  # a capacity that holds this data's filled slots, short of all
         p = layer_plan(dataclasses.replace(base.compression, kv_capacity=float(cap)), 0, geom)
         if filled <= p.n_dyn_cap < p.n_dyn:
