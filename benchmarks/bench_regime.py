@@ -158,7 +158,7 @@ def kv_fill(config: VGGTConfig, tokens, saliency, params, grid_hw) -> float:
         if over:
             print(f"  layer {plan.layer}: {int(most)} dynamic K/V slots filled, over its capacity {plan.n_dyn_cap} "
                   f"(attends with all {plan.n_dyn})", flush=True)
-        total += plan.n_kv - plan.n_dyn + (plan.n_dyn if over else plan.n_dyn_cap)
+        total += plan.n_kv if over else plan.n_kv_cap
     return filled / total if total else 1.0
 
 

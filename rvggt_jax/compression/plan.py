@@ -101,6 +101,12 @@ class LayerPlan:
     kv_keep: np.ndarray | None = field(default=None, compare=False, repr=False)  # [N] `kv_static_keep`
     fixed_kv: np.ndarray | None = field(default=None, compare=False, repr=False)  # [n_fixed] into the queries
 
+    @property
+    def n_kv_cap(self) -> int:
+        """The K/V slots the layer attends with on one device unless a sequence fills more
+        than `n_dyn_cap` dynamic slots (then `n_kv`)."""
+        return self.n_kv - self.n_dyn + self.n_dyn_cap
+
 
 def _merge_counts(comp: CompressionConfig, layer: int, geom: Geometry, part: Partition):
     """(r, r_frame) of a layer."""

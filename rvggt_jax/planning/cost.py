@@ -100,7 +100,7 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
         else:
             # (with duplicate_protected, the protected tokens' own queries attend too; the
             # dynamic K/V slots: the capacity a sequence attends with unless it fills more)
-            q, kv = plan.n_query + plan.n_dup, plan.n_kv - plan.n_dyn + plan.n_dyn_cap
+            q, kv = plan.n_query + plan.n_dup, plan.n_kv_cap
             dqk = padded_head_dim(d, plan.size_column, comp.head_pad_multiple)
             dv = d if comp.head_pad_multiple == 1 or not plan.size_column else dqk
             attn = _attn_flops(q, kv, heads, dqk, dv)
