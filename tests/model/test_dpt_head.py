@@ -11,7 +11,7 @@ import pytest
 
 from rvggt_jax import init_params
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model.heads import dpt, resize
+from rvggt_jax.model.heads import conv, dpt, resize
 from tests.helpers import TINY, rel_err
 from tests.helpers.heads_params import load_head_params, load_io
 
@@ -125,6 +125,28 @@ def test_1x1_conv_as_matmul_equals_convolution(with_bias):
     if with_bias:
         ref = ref + p["bias"]
     np.testing.assert_allclose(np.asarray(dpt.conv2d(p, x)), np.asarray(ref), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("outputs", [2, 4, 8, 9])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.bfloat16])
+def test_relu_pointwise_equals_relu_then_1x1_conv(outputs, dtype):
+    """The heads' last conv (ReLU, then a 1x1 conv with few outputs) as a multiply-reduce,
+    against the ReLU and the convolution as written: the reduce up to 8 outputs, the matmul
+    past them; x's dtype kept, products in float32 either way."""
+    rng = np.random.default_rng(outputs)
+    x = jnp.asarray(rng.standard_normal((2, 5, 7, 32)).astype(np.float32))
+    p = {"kernel": jnp.asarray(rng.standard_normal((1, 1, 32, outputs)).astype(np.float32)),
+         "bias": jnp.asarray(rng.standard_normal(outputs).astype(np.float32))}
+    ref = jax.lax.conv_general_dilated(jax.nn.relu(x), p["kernel"], (1, 1), "VALID",
+                                       dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                                       precision=jax.lax.Precision.HIGHEST) + p["bias"]
+    got = jax.jit(conv.relu_pointwise)(p, x.astype(dtype))
+    assert got.shape == (2, 5, 7, outputs) and got.dtype == dtype
+    # bf16: the input's own rounding (2^-9 relative) summed over 32 channels
+    assert rel_err(got.astype(jnp.float32), ref) <= (1e-6 if dtype == jnp.float32 else 2e-2)
+    assert conv.POINTWISE_REDUCE_MAX_OUT == 8  # the branch the outputs above straddle
+    with pytest.raises(ValueError, match="1x1 kernel"):
+        conv.relu_pointwise({"kernel": jnp.zeros((3, 3, 32, 2))}, x)
 
 
 @pytest.mark.parametrize("channels, size", [((6, 4), (9, 11)), ((4, 4), (1, 7)), ((5, 3), (5, 6)), ((3, 5), (9, 11))])

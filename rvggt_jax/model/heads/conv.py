@@ -26,6 +26,32 @@ def conv2d(p: Params, x: jax.Array, stride: int = 1, padding: int | None = None)
     return y
 
 
+# Output channels up to which `relu_pointwise` reduces instead of multiplying matrices.
+POINTWISE_REDUCE_MAX_OUT = 8
+
+
+def relu_pointwise(p: Params, x: jax.Array) -> jax.Array:
+    """conv2d(p, relu(x)) for a 1x1 kernel [1, 1, I, O]: x [..., I] -> [..., O] in x's
+    dtype, products and sums in float32.
+
+    With few outputs (O <= POINTWISE_REDUCE_MAX_OUT: the heads' last conv, 32 -> 2 or 4)
+    it is a multiply-reduce over the I channels, which XLA fuses with the ReLU into one
+    pass over x. As a matmul, the ReLU'd map is written out, read again, and multiplied
+    by a 2- or 4-column matrix that XLA:CPU's matmul runs at a few GFLOP/s: the final
+    stage of both heads over 64 frames of 168 x 224 took 72 and 80 ms against 39 and 42
+    (docs/benchmarks.md)."""
+    kernel = p["kernel"]
+    if kernel.shape[:2] != (1, 1):
+        raise ValueError(f"relu_pointwise takes a 1x1 kernel, got {kernel.shape[:2]}")
+    if kernel.shape[-1] > POINTWISE_REDUCE_MAX_OUT:
+        return conv2d(p, jax.nn.relu(x))
+    w = kernel[0, 0].astype(jnp.float32)  # [I, O]
+    y = jnp.sum(jnp.maximum(x.astype(jnp.float32), 0.0)[..., :, None] * w, axis=-2)
+    if "bias" in p:
+        y = y + p["bias"].astype(jnp.float32)
+    return y.astype(x.dtype)
+
+
 def _as_linear(p: Params) -> Params:
     out = {"kernel": p["kernel"][0, 0]}
     if "bias" in p:

@@ -22,7 +22,7 @@ from rvggt_jax.model import layers
 from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
-from rvggt_jax.model.heads.conv import conv2d, conv_transpose_patchwise
+from rvggt_jax.model.heads.conv import conv2d, conv_transpose_patchwise, relu_pointwise
 from rvggt_jax.model.heads.pos_embed import add_pos_embed, pos_embed_map
 from rvggt_jax.model.heads.resize import patchwise_conv3x3, resize_bilinear_align_corners, resized_conv3x3
 from rvggt_jax.model.kept import KeptLayer, ProjectedLayer
@@ -311,7 +311,7 @@ def _dpt_per_frames(params: Params, config: DPTHeadConfig, image_hw, patch_start
 
     def per_frames(tokens):
         x = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, config.pos_embed, columns, upsampled)
-        x = conv2d(conv2["2"], jax.nn.relu(upsample_conv(x)))
+        x = relu_pointwise(conv2["2"], upsample_conv(x))
         return activate_head(x, activation, conf_activation)
 
     return per_frames
