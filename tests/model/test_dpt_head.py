@@ -145,6 +145,12 @@ def test_relu_pointwise_equals_relu_then_1x1_conv(outputs, dtype):
     # bf16: the input's own rounding (2^-9 relative) summed over 32 channels
     assert rel_err(got.astype(jnp.float32), ref) <= (1e-6 if dtype == jnp.float32 else 2e-2)
     assert conv.POINTWISE_REDUCE_MAX_OUT == 8  # the branch the outputs above straddle
+    # the gradient too, exact zeros included (torch's ReLU passes none there)
+    x0 = x.at[:, :, :3].set(0.0)
+    r = jnp.asarray(rng.standard_normal((2, 5, 7, outputs)).astype(np.float32))
+    g_ours = jax.grad(lambda t: jnp.sum(conv.relu_pointwise(p, t) * r))(x0)
+    g_ref = jax.grad(lambda t: jnp.sum(dpt.conv2d(p, jax.nn.relu(t)) * r))(x0)
+    assert rel_err(g_ours, g_ref) <= 1e-6 and not np.any(np.asarray(g_ours)[:, :, :3])
     with pytest.raises(ValueError, match="1x1 kernel"):
         conv.relu_pointwise({"kernel": jnp.zeros((3, 3, 32, 2))}, x)
 

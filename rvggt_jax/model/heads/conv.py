@@ -37,16 +37,17 @@ def relu_pointwise(p: Params, x: jax.Array) -> jax.Array:
     With few outputs (O <= POINTWISE_REDUCE_MAX_OUT: the heads' last conv, 32 -> 2 or 4)
     it is a multiply-reduce over the I channels, which XLA fuses with the ReLU into one
     pass over x. As a matmul, the ReLU'd map is written out, read again, and multiplied
-    by a 2- or 4-column matrix that XLA:CPU's matmul runs at a few GFLOP/s: the final
-    stage of both heads over 64 frames of 168 x 224 took 72 and 80 ms against 39 and 42
-    (docs/benchmarks.md)."""
+    by a 2- or 4-column matrix, which XLA:CPU's matmul runs at ~20 GFLOP/s: a head's last
+    stage (3x3 conv, ReLU, 1x1) over 64 frames of 168 x 224 took 72 ms (2 outputs) and 80
+    ms (4) that way, 39 and 42 ms this way (docs/benchmarks.md). jax.nn.relu keeps torch's
+    zero gradient at 0."""
     kernel = p["kernel"]
     if kernel.shape[:2] != (1, 1):
         raise ValueError(f"relu_pointwise takes a 1x1 kernel, got {kernel.shape[:2]}")
     if kernel.shape[-1] > POINTWISE_REDUCE_MAX_OUT:
         return conv2d(p, jax.nn.relu(x))
     w = kernel[0, 0].astype(jnp.float32)  # [I, O]
-    y = jnp.sum(jnp.maximum(x.astype(jnp.float32), 0.0)[..., :, None] * w, axis=-2)
+    y = jnp.sum(jax.nn.relu(x.astype(jnp.float32))[..., :, None] * w, axis=-2)
     if "bias" in p:
         y = y + p["bias"].astype(jnp.float32)
     return y.astype(x.dtype)
