@@ -58,6 +58,7 @@ def main(argv=None) -> None:
                          "DINO ViT-L, DPT 256), random weights, ~5 GB")
     args = ap.parse_args(argv)
     rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
+    rvggt_jax.keep_freed_host_memory()  # each run reuses the host memory the last one freed, as `rvggt` runs
 
     import torch
 

@@ -57,6 +57,7 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args(argv)
     rvggt_jax.prefer_threaded_convolutions()
+    rvggt_jax.keep_freed_host_memory()  # each run reuses the host memory the last one freed, as `rvggt` runs
     config = small_layout() if args.layout == "small" else rvggt_jax.VGGTConfig(enable_track=False)
     params = rvggt_jax.init_params(config, 0)
     hp = {k: params[k] for k in ("depth_head", "point_head")}

@@ -226,6 +226,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.mode == "run":  # timed
         rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
+        rvggt_jax.keep_freed_host_memory()  # each run reuses the host memory the last one freed, as `rvggt` runs
     if args.mode == "plan" and args.target:  # deviceless: no device client (as `rvggt plan`)
         from rvggt_jax.app.plan_command import use_host_compilers
 

@@ -20,7 +20,9 @@ written by the upstream worker and read by `rvggt_jax.load_pretrained`.
 Each peer runs in its own subprocess (`peer_worker.py`) under `--torch-python` (a Python
 with torch; torch is never a dependency of rvggt-jax) with torch.set_num_threads(2); ours
 runs here, jitted, on XLA:CPU with its default threads (the 2 cores of this machine, as
-bench_dense.py / bench_regime.py run it). Each peer runs as written except for the
+bench_dense.py / bench_regime.py run it). Both sides run with glibc's malloc keeping freed
+memory for the next run (`rvggt_jax.keep_freed_host_memory`, as `rvggt` runs; the peers
+get it through the environment, `peer_environment`). Each peer runs as written except for the
 changes it needs to run on CPU in float32: `peer_worker.CPU_CHANGES` (printed).
 
 FastVGGT's configuration on our side: the `fastvggt` preset with duplicate_protected=True
@@ -45,6 +47,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -61,6 +64,7 @@ sys.path.insert(0, str(ROOT))
 import rvggt_jax  # noqa: E402
 from benchmarks.bench_memory import small_layout  # noqa: E402
 from rvggt_jax.compression.partition import dst_cells  # noqa: E402
+from rvggt_jax.ops import host_heap  # noqa: E402
 
 KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
 WORKER = ROOT / "benchmarks" / "peer_worker.py"
@@ -76,7 +80,8 @@ class Peer:
         if dst_draw is not None:
             cmd += ["--dst-draw", str(dst_draw)]
         self.kind = kind
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
+                                     env=peer_environment())
         self.info = self._read()
 
     def _read(self) -> dict:
@@ -94,6 +99,15 @@ class Peer:
         self.proc.stdin.write(json.dumps({"cmd": "quit"}) + "\n")
         self.proc.stdin.flush()
         self.proc.wait()
+
+
+def peer_environment() -> dict[str, str]:
+    """A peer's environment: ours, with glibc's malloc keeping freed memory as ours does
+    (`rvggt_jax.keep_freed_host_memory`; glibc reads it from the environment at start)."""
+    env = dict(os.environ)
+    if host_heap.applied():
+        env.update(host_heap.glibc_environment())
+    return env
 
 
 def dst_draw(frames: int, h: int, w: int, seed: int = 33) -> np.ndarray:
@@ -129,6 +143,8 @@ def main(argv=None) -> None:
     if not args.upstream_src:
         raise SystemExit("--upstream-src is needed (it writes the checkpoint every side loads)")
     rvggt_jax.prefer_threaded_convolutions()
+    rvggt_jax.keep_freed_host_memory()  # each run reuses the host memory the last one freed, as `rvggt` runs
+    print(f"freed host memory kept for reuse, both sides: {host_heap.applied()}", flush=True)
 
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-peers-"))
     work.mkdir(parents=True, exist_ok=True)

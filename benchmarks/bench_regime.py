@@ -180,6 +180,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=str, default=None, help="append the markdown table to this file")
     args = ap.parse_args(argv)
     rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
+    rvggt_jax.keep_freed_host_memory()  # each run reuses the host memory the last one freed, as `rvggt` runs
     for name in args.presets:
         if name not in PRESETS:
             raise SystemExit(f"unknown preset {name}; known: {PRESETS}")

@@ -185,6 +185,7 @@ def main() -> None:
         import rvggt_jax
 
         rvggt_jax.prefer_threaded_convolutions()  # before anything starts JAX: threaded CPU convs, as `rvggt` runs
+        rvggt_jax.keep_freed_host_memory()  # each run reuses the host memory the last one freed, as `rvggt` runs
     if args.what == "plan":
         plan(args.frames, args.devices, args.presets, args.dtypes, args.out)
     elif args.what == "exchange":

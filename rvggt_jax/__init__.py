@@ -26,6 +26,9 @@ _LAZY = {
     # multi-threaded XLA:CPU convolutions; importing rvggt_jax leaves os.environ alone, the
     # `rvggt` command calls it (see rvggt_jax.ops.xla_cpu)
     "prefer_threaded_convolutions": "rvggt_jax.ops.xla_cpu",
+    # glibc's malloc keeping freed memory for the next run (rvggt_jax.ops.host_heap); the
+    # `rvggt` command calls it
+    "keep_freed_host_memory": "rvggt_jax.ops.host_heap",
 }
 # Submodules reachable as attributes without an explicit import: `rvggt_jax.nn.VGGT` (the
 # Flax modules, `rvggt_jax.model.modules`, under the name they had before the layout).

@@ -259,11 +259,14 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rvggt` console script; returns the exit status."""
+    from rvggt_jax.ops.host_heap import keep_freed_host_memory
     from rvggt_jax.ops.xla_cpu import prefer_threaded_convolutions, use_cpu_without_accelerator
 
-    # before anything starts JAX: no probing of absent accelerators, multi-threaded CPU convolutions
+    # before anything starts JAX: no probing of absent accelerators, multi-threaded CPU
+    # convolutions; and each run reusing the host memory the last one freed
     use_cpu_without_accelerator()
     prefer_threaded_convolutions()
+    keep_freed_host_memory()
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] == "convert":
