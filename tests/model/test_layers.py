@@ -36,6 +36,23 @@ def test_layer_norm_statistics_in_float32_for_bfloat16_rows():
     assert layers.layer_norm(None, jnp.asarray(x, jnp.bfloat16)).dtype == jnp.bfloat16
 
 
+@pytest.mark.parametrize("shape", [(64,), (5, 64), (2, 3, 64), (2, 3, 1, 64), (2, 3, 4, 1, 16)])
+def test_layer_norm_of_any_rank_normalises_each_row(shape):
+    """Rows of any rank (statistics over a [rows, C] view: the qk-norms' [B, N, H, D]),
+    against a float64 reference, with the input's shape kept."""
+    rng = np.random.default_rng(len(shape))
+    x = (rng.standard_normal(shape) * 3 + 1).astype(np.float32)
+    p = {"scale": rng.standard_normal(shape[-1]).astype(np.float32),
+         "bias": rng.standard_normal(shape[-1]).astype(np.float32)}
+    out = layers.layer_norm(p, jnp.asarray(x))
+    assert out.shape == shape and out.dtype == jnp.float32
+    x64 = x.astype(np.float64)
+    ref = (x64 - x64.mean(-1, keepdims=True)) / np.sqrt(x64.var(-1, keepdims=True) + 1e-5) * p["scale"] + p["bias"]
+    np.testing.assert_allclose(np.asarray(out), ref, rtol=1e-5, atol=1e-5)
+    flat = layers.layer_norm(p, jnp.asarray(x.reshape(-1, shape[-1])))
+    np.testing.assert_array_equal(np.asarray(out).reshape(-1, shape[-1]), np.asarray(flat))
+
+
 def test_sequence_tables_are_periodic_only_when_long(monkeypatch):
     frame = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(2, 3, 1))[None], 8, 100.0)
     short = layers.RopeTables.of_sequence(frame, 4)
