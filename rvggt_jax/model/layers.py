@@ -51,7 +51,7 @@ def layer_norm(p: Params | None, x: jax.Array, eps: float = TORCH_LN_EPS, dtype:
     # the rows as a [rows, C] matrix (a free reshape, the same values bit for bit): XLA:CPU
     # fuses the row reductions of the qk-norms' [B, N, H, D] worse than those of a matrix
     # (`regime`'s forward at 64 frames of the speed layout -3%, docs/benchmarks.md)
-    x = x.astype(jnp.float32).reshape(-1, shape[-1]) if x.ndim > 2 else x.astype(jnp.float32)
+    x = x.astype(jnp.float32).reshape(-1, shape[-1])
     mean = jnp.mean(x, axis=-1, keepdims=True)
     xc = x - mean
     var = jnp.mean(xc * xc, axis=-1, keepdims=True)
