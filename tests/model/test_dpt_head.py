@@ -151,6 +151,15 @@ def test_relu_pointwise_equals_relu_then_1x1_conv(outputs, dtype):
     g_ours = jax.grad(lambda t: jnp.sum(conv.relu_pointwise(p, t) * r))(x0)
     g_ref = jax.grad(lambda t: jnp.sum(dpt.conv2d(p, jax.nn.relu(t)) * r))(x0)
     assert rel_err(g_ours, g_ref) <= 1e-6 and not np.any(np.asarray(g_ours)[:, :, :3])
+    # non-finite inputs as jax.nn.relu takes them (NaN kept, -inf to 0, +inf kept)
+    xn = x.at[0, 0, 0, 0].set(jnp.nan).at[0, 1, 1, 1].set(-jnp.inf).at[1, 2, 2, 2].set(jnp.inf)
+    ref_n = np.asarray(dpt.conv2d(p, jax.nn.relu(xn)))
+    got_n = np.asarray(jax.jit(conv.relu_pointwise)(p, xn))
+    np.testing.assert_array_equal(np.isnan(got_n), np.isnan(ref_n))
+    np.testing.assert_array_equal(np.isinf(got_n), np.isinf(ref_n))
+    assert np.isnan(got_n[0, 0, 0]).all() and np.isfinite(got_n[0, 1, 1]).all()
+    fin = np.isfinite(ref_n)
+    assert rel_err(got_n[fin], ref_n[fin]) <= 1e-6
     with pytest.raises(ValueError, match="1x1 kernel"):
         conv.relu_pointwise({"kernel": jnp.zeros((3, 3, 32, 2))}, x)
 

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from rvggt_jax.model import layers
 from rvggt_jax.model.params import Params
+from rvggt_jax.ops.ordering import zeros_from
 
 
 def conv2d(p: Params, x: jax.Array, stride: int = 1, padding: int | None = None) -> jax.Array:
@@ -39,18 +40,37 @@ def relu_pointwise(p: Params, x: jax.Array) -> jax.Array:
     pass over x. As a matmul, the ReLU'd map is written out, read again, and multiplied
     by a 2- or 4-column matrix, which XLA:CPU's matmul runs at ~20 GFLOP/s: a head's last
     stage (3x3 conv, ReLU, 1x1) over 64 frames of 168 x 224 took 72 ms (2 outputs) and 80
-    ms (4) that way, 39 and 42 ms this way (docs/benchmarks.md). jax.nn.relu keeps torch's
-    zero gradient at 0."""
+    ms (4) that way, 39 and 42 ms this way (docs/benchmarks.md). The ReLU keeps torch's
+    zero gradient at 0 (`_relu_against`)."""
     kernel = p["kernel"]
     if kernel.shape[:2] != (1, 1):
         raise ValueError(f"relu_pointwise takes a 1x1 kernel, got {kernel.shape[:2]}")
     if kernel.shape[-1] > POINTWISE_REDUCE_MAX_OUT:
         return conv2d(p, jax.nn.relu(x))
     w = kernel[0, 0].astype(jnp.float32)  # [I, O]
-    y = jnp.sum(jax.nn.relu(x.astype(jnp.float32))[..., :, None] * w, axis=-2)
+    y = jnp.sum(_relu_against(x.astype(jnp.float32), zeros_from(w.shape[:1], jnp.float32, w))[..., :, None] * w,
+                axis=-2)
     if "bias" in p:
         y = y + p["bias"].astype(jnp.float32)
     return y.astype(x.dtype)
+
+
+@jax.custom_jvp
+def _relu_against(x: jax.Array, zero: jax.Array) -> jax.Array:
+    """jax.nn.relu(x) for x [..., I], against zero [I], a zero vector made from another
+    value (`zeros_from`). XLA:CPU's YNNPACK fusion of the 3x3 conv, the ReLU and the
+    multiply-reduce takes a scalar constant's broadcast as an operand that another op
+    writes out, one [frames, H, W, I] map of zeros per frame group (0.5 ms each, 32 per
+    head at 64 frames of 168 x 224); a vector operand it broadcasts itself. The gradient
+    is jax.nn.relu's: none at 0, as torch's."""
+    return jnp.maximum(x, zero)
+
+
+@_relu_against.defjvp
+def _relu_against_jvp(primals, tangents):
+    x, zero = primals
+    tx, _ = tangents
+    return _relu_against(x, zero), jnp.where(x > zero, tx, jnp.zeros_like(tx))
 
 
 def _as_linear(p: Params) -> Params:
