@@ -99,21 +99,48 @@ class _UnitRows(NamedTuple):
                                  bytes_per_row=per_row, dep=self.metric)
 
 
+# Columns per chunk of `_best`'s two-level argmax.
+ARGMAX_CHUNK = 16
+
+
 def _best(a: jax.Array, d: jax.Array, nb: int, rank: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """Unit rows a [..., Na, C] against d [..., Nb', C] -> (max cosine, argmax) [..., Na]:
-    argmax as an index into the group's nb dst (`rank`: a device's dst block's ranks in
-    the whole dst list, -1 for padding slots)."""
+    argmax as an index into the group's nb dst, the first one reaching the max (ties to
+    the lowest index; a row of NaN features gets the last index). `rank`: a device's dst
+    block's ranks in the whole dst list, -1 for padding slots."""
     sims = jnp.einsum("...ic,...jc->...ij", a, d, preferred_element_type=jnp.float32)
-    if rank is None:
-        rank = jnp.arange(sims.shape[-1], dtype=jnp.float32)
-    else:
+    if rank is not None:
         sims = jnp.where(rank >= 0, sims, -jnp.inf)
-    top = jnp.max(sims, axis=-1)
-    # argmax as the first index reaching the max: two plain reductions, 3x faster on
-    # XLA:CPU than its argmax (a variadic reduce); equal, ties included (a row of NaN
-    # features gets the last index). Indices as float32: exact below 2^24.
-    first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
+        top = jnp.max(sims, axis=-1)
+        first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
+        return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
+    # Two levels, so that the similarities are read once after the matmul writes them:
+    # the max of every chunk of ARGMAX_CHUNK columns, the row's max from those, the first
+    # chunk holding it, then the first column of that chunk reaching it. (XLA:CPU's
+    # argmax is a variadic reduce, 3x slower; a first-index-reaching-the-max pass over
+    # the whole row is one select YNNPACK does not fuse: written out and read again.)
+    # Indices as float32: exact below 2^24.
+    c = ARGMAX_CHUNK
+    if sims.shape[-1] % c:  # (columns of -inf: never a max, NaN aside)
+        sims = jnp.pad(sims, [(0, 0)] * (sims.ndim - 1) + [(0, c - sims.shape[-1] % c)], constant_values=-jnp.inf)
+    chunks_n = sims.shape[-1] // c
+    blocks = sims.reshape(sims.shape[:-1] + (chunks_n, c))
+    top_c = jnp.max(blocks, axis=-1)  # [..., Na, chunks]
+    top = jnp.max(top_c, axis=-1)
+    k = _first_reaching(top_c, top).astype(jnp.int32)
+    chunk = jnp.take_along_axis(blocks, jnp.minimum(k, chunks_n - 1)[..., None, None], axis=-2,
+                                mode="promise_in_bounds")[..., 0, :]
+    col = _first_reaching(chunk, top)
+    # (none in the chunk: a NaN row, whose chunk maxima XLA:CPU may take as -inf)
+    first = jnp.where(col < c, k.astype(jnp.float32) * c + col, np.float32(nb))
     return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
+
+
+def _first_reaching(x: jax.Array, top: jax.Array) -> jax.Array:
+    """x [..., n], top [...] -> the first index (float32) along the last axis with x >= top,
+    n where none does (top NaN)."""
+    n = x.shape[-1]
+    return jnp.min(jnp.where(x >= top[..., None], jnp.arange(n, dtype=jnp.float32), np.float32(n)), axis=-1)
 
 
 def _src_rows_per_block(na: int, b: int, dst_rows: int, chunk: int) -> int:
