@@ -326,8 +326,13 @@ def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: Laye
     n_dst, n_src, r, U = plan.n_dst, plan.n_src, plan.r, plan.n_unm
 
     if plan.scope == "sequence":
-        score, arg = best_match(metric, part.src_pos[None], part.dst_pos[None], **found)
-        score, arg = score[:, 0], arg[:, 0]  # [B, N_src], arg indexes dst_pos
+        matched = None if protected_src is None else plan.matched_src
+        src_pos = part.src_pos if matched is None else part.src_pos[matched]
+        score, arg = best_match(metric, src_pos[None], part.dst_pos[None], **found)
+        score, arg = score[:, 0], arg[:, 0]  # [B, N_src] (or the matched src), arg indexes dst_pos
+        if matched is not None:  # the statically protected src: never merged, their arg unused
+            score = jnp.full((b, n_src), PROTECTED_SCORE, score.dtype).at[:, matched].set(score)
+            arg = jnp.zeros((b, n_src), arg.dtype).at[:, matched].set(arg)
         if protected_src is not None:
             score = jnp.where(protected_src, PROTECTED_SCORE, score)
         if plan.protected_rows:

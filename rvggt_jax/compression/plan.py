@@ -100,6 +100,10 @@ class LayerPlan:
     partition: Partition | None = field(default=None, compare=False, repr=False)
     kv_keep: np.ndarray | None = field(default=None, compare=False, repr=False)  # [N] `kv_static_keep`
     fixed_kv: np.ndarray | None = field(default=None, compare=False, repr=False)  # [n_fixed] into the queries
+    # [n] indices into the src list of the src the layer matches, None: every src. Under
+    # stride protection the protected src are static and never merge (r leaves them out):
+    # no similarities are computed for them (FastVGGT's alpha 0.1: a tenth of the src)
+    matched_src: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def n_kv_cap(self) -> int:
@@ -229,8 +233,11 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
                     and _merge_counts(comp, prev, geom, part)[0] > 0):
                 match = "reuse"
                 break
+    matched_src = None
+    if comp.match_scope == "sequence" and comp.protect == "stride":
+        matched_src = _ro(np.flatnonzero(~np.isin(part.src_pos, stride_protected(N, comp.alpha))))
     if comp.match_scope == "sequence":
-        pairs = n_src * n_dst
+        pairs = (n_src if matched_src is None else matched_src.size) * n_dst
     else:
         pairs = (geom.frames - 1) * part.src_pos_f.shape[1] * part.dst_rank_f.shape[1]
 
@@ -270,7 +277,7 @@ def layer_plan(comp: CompressionConfig, layer: int, geom: Geometry) -> LayerPlan
                      expected_dyn=exp_dyn, expected_dup=exp_dup, masked=masked,
                      size_column=masked or comp.size_bias,
                      match=match, match_key=key, r_frame=r_f, match_pairs=pairs, r_max=r_max,
-                     protected_rows=protected_rows, n_dup_all=n_dup_all,
+                     protected_rows=protected_rows, n_dup_all=n_dup_all, matched_src=matched_src,
                      fixed_kv=_ro(np.flatnonzero(keep[part.dst_pos])) if kv_mode == "select" else None,
                      **index, **base)
 

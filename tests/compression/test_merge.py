@@ -89,6 +89,36 @@ def test_protected_never_merged_and_sizes_count_groups():
         assert (~part.is_dst[merged_src]).all()  # only src merge
 
 
+@pytest.mark.parametrize("alpha", [0.1, 0.3])
+def test_stride_protected_src_are_not_matched(alpha):
+    """Under stride protection (FastVGGT) the protected src are static and never merge:
+    the plan matches only the others (`LayerPlan.matched_src`), and the match equals the
+    one computed over every src (protected scores and args then unused)."""
+    import dataclasses
+
+    from rvggt_jax.compression.partition import stride_protected
+    from rvggt_jax.compression.state import init_state
+    geom = Geometry(S, H, W, NS)
+    cc = make_compression("fastvggt", 24, alpha=alpha)
+    plan = layer_plan(cc, 3, geom)
+    part = partition(geom, cc.dst_seed)
+    prot_src = np.isin(part.src_pos, stride_protected(N, alpha))
+    assert prot_src.any() and plan.matched_src is not None
+    np.testing.assert_array_equal(plan.matched_src, np.flatnonzero(~prot_src))
+    assert plan.r <= plan.matched_src.size and plan.match_pairs == plan.matched_src.size * plan.n_dst
+    metric, _ = _inputs(5)
+    protected = init_state(cc, None, geom).protected
+    protected_src = jnp.take(protected, part.src_pos, axis=1)
+    np.testing.assert_array_equal(np.asarray(protected_src[0]), prot_src)
+    # (eager: the two plans compare equal, so a jit would reuse one program for both)
+    got = merge_lib.compute_match(jnp.asarray(metric[:1]), protected_src, plan, 0)
+    want = merge_lib.compute_match(jnp.asarray(metric[:1]), protected_src, dataclasses.replace(plan, matched_src=None), 0)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    # saliency protection is data: every src is matched
+    assert layer_plan(make_compression("regime", 24), 0, geom).matched_src is None
+
+
 def test_merge_unmerge_identity_and_group_outputs():
     x = jnp.asarray(np.random.default_rng(1).standard_normal((2, N, 6)), jnp.float32)
     ident = identity_match(N, 2)
