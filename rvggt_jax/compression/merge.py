@@ -125,7 +125,9 @@ def _best(a: jax.Array, d: jax.Array, nb: int, rank: jax.Array | None = None) ->
         sims = jnp.pad(sims, [(0, 0)] * (sims.ndim - 1) + [(0, c - sims.shape[-1] % c)], constant_values=-jnp.inf)
     chunks_n = sims.shape[-1] // c
     blocks = sims.reshape(sims.shape[:-1] + (chunks_n, c))
-    top_c = jnp.max(blocks, axis=-1)  # [..., Na, chunks]
+    # (the barrier: else XLA folds the max of the chunk maxima into a second pass over
+    # every similarity)
+    top_c = jax.lax.optimization_barrier(jnp.max(blocks, axis=-1))  # [..., Na, chunks]
     top = jnp.max(top_c, axis=-1)
     k = _first_reaching(top_c, top).astype(jnp.int32)
     chunk = jnp.take_along_axis(blocks, jnp.minimum(k, chunks_n - 1)[..., None, None], axis=-2,
