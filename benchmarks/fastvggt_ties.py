@@ -4,7 +4,7 @@ Runs FastVGGT once with `peer_worker.py --trace-layer -2` on the checkpoint and 
 that `bench_peers.py --keep <folder>` left (unless <folder>/trace_<S>.npz exists); for every global layer, the features FastVGGT matched on (its
 attention input, the block's norm1 output), its src / dst rows in its own order, and its
 choice (torch.max over its dst order). On the same features it runs our matching
-(`rvggt_jax.compression.merge.best_match`, dst in ascending position, first index on
+(`rvggt_jax.compression.matching.best_match`, dst in ascending position, first index on
 ties) and a float64 reference, and reports where the dst choices differ and by how much
 the two best cosines differ there. Also compares every global block's output with ours
 (`--ours`: our forward's aggregated layers, written by this script).
@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import rvggt_jax  # noqa: E402
-from rvggt_jax.compression.merge import best_match  # noqa: E402
+from rvggt_jax.compression.matching import best_match  # noqa: E402
 from rvggt_jax.compression.partition import Geometry, partition, stride_protected  # noqa: E402
 
 

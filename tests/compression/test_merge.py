@@ -7,6 +7,7 @@ import pytest
 
 from rvggt_jax.compression import kv as kv_lib
 from rvggt_jax.compression import make_compression
+from rvggt_jax.compression import matching
 from rvggt_jax.compression import merge as merge_lib
 from rvggt_jax.compression.partition import Geometry, partition
 from rvggt_jax.compression.plan import layer_plan
@@ -202,12 +203,15 @@ def test_band_cache_reuse_and_recompute():
     assert all(layer_plan(no_cache, i, Geometry(S, H, W, NS)).match == "compute" for i in range(24))
 
 
-@pytest.mark.parametrize("na, nb, lead", [(37, 3536, ()), (20, 50, (3,)), (9, 16, ()), (11, 7, (2,)), (5, 33, ())])
-def test_best_is_the_first_index_reaching_each_rows_max(na, nb, lead):
-    """`merge._best` (two levels: chunk maxima, then the first chunk and column reaching
-    the row's max) against numpy's argmax, the first index of the max: ties across and
-    within chunks, -0.0 against 0.0, negative rows, a column count off the chunk size
-    (`ARGMAX_CHUNK`), a NaN row (its last index) and leading dims; the max is the row's."""
+@pytest.mark.parametrize("na, nb, lead, width", [(37, 3536, (), 16), (20, 50, (3,), 10), (9, 16, (), 16),
+                                                 (11, 7, (2,), None), (5, 33, (), 11), (6, 97, (), None)])
+def test_best_is_the_first_index_reaching_each_rows_max(na, nb, lead, width):
+    """`matching._best` (two levels: chunk maxima, then the first chunk and column reaching
+    the row's max; one level when no chunk width from 8 to 32 divides the dst count)
+    against numpy's argmax, the first index of the max: ties across and within chunks,
+    -0.0 against 0.0, negative rows, a NaN row (its last index) and leading dims; the max
+    is the row's."""
+    assert matching._chunk_width(nb) == width
     rng = np.random.default_rng(nb)
     # a few distinct directions: many exact ties between the cosines
     dirs = rng.standard_normal((4, 6)).astype(np.float32)
@@ -217,8 +221,8 @@ def test_best_is_the_first_index_reaching_each_rows_max(na, nb, lead):
     a[..., 2, :] = -dirs[0]  # ties at a negative max unless some dst is opposite to dirs[0]
     if na > 4:
         a[..., 4, :] = np.nan
-    a, d = merge_lib.normalize(jnp.asarray(a)), merge_lib.normalize(jnp.asarray(d))
-    top, arg = jax.jit(merge_lib._best, static_argnums=2)(a, d, nb)
+    a, d = matching.normalize(jnp.asarray(a)), matching.normalize(jnp.asarray(d))
+    top, arg = jax.jit(matching._best, static_argnums=2)(a, d, nb)
     sims = np.einsum("...ic,...jc->...ij", np.asarray(a), np.asarray(d))
     got_sims = np.asarray(jnp.einsum("...ic,...jc->...ij", a, d, precision="highest"))
     want = np.where(np.isnan(got_sims).any(-1), nb - 1, np.argmax(np.where(np.isnan(got_sims), -np.inf, got_sims), -1))
@@ -226,7 +230,6 @@ def test_best_is_the_first_index_reaching_each_rows_max(na, nb, lead):
     finite = ~np.isnan(sims).any(-1)
     np.testing.assert_array_equal(np.asarray(top)[finite], got_sims.max(-1)[finite])
     assert not np.isfinite(np.asarray(top)[~finite]).any()  # (NaN, or -inf: XLA:CPU's max of NaN varies)
-    assert nb % merge_lib.ARGMAX_CHUNK or nb // merge_lib.ARGMAX_CHUNK > 1 or nb == merge_lib.ARGMAX_CHUNK
 
 
 @pytest.mark.parametrize("shape, r", [((2, 100), 37), ((1, 3, 50), 20), ((1, 5000), 4000), ((2, 40), 0),
