@@ -24,7 +24,7 @@ def normalize(x: jax.Array, eps: float = 1e-6) -> jax.Array:
 
 
 # Bytes of one block of float32 cosine similarities [rows, N_dst]: blocks that stay in
-# cache for the two reductions (the whole matrix is [N_src, N_dst]).
+# cache for the reductions (the whole matrix is [N_src, N_dst]).
 SIMILARITY_BLOCK_BYTES = 8 * 2**20
 
 
