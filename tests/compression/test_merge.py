@@ -1,5 +1,7 @@
 """Matching, merge / unmerge, sizes, protection and the band cache."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,8 +11,9 @@ from rvggt_jax.compression import kv as kv_lib
 from rvggt_jax.compression import make_compression
 from rvggt_jax.compression import matching
 from rvggt_jax.compression import merge as merge_lib
-from rvggt_jax.compression.partition import Geometry, partition
+from rvggt_jax.compression.partition import Geometry, partition, stride_protected
 from rvggt_jax.compression.plan import layer_plan
+from rvggt_jax.compression.state import init_state
 from tests.helpers.compression_reference import identity_match, reference_match
 
 S, H, W, NS = 4, 5, 7, 5
@@ -95,10 +98,6 @@ def test_stride_protected_src_are_not_matched(alpha):
     """Under stride protection (FastVGGT) the protected src are static and never merge:
     the plan matches only the others (`LayerPlan.matched_src`), and the match equals the
     one computed over every src (protected scores and args then unused)."""
-    import dataclasses
-
-    from rvggt_jax.compression.partition import stride_protected
-    from rvggt_jax.compression.state import init_state
     geom = Geometry(S, H, W, NS)
     cc = make_compression("fastvggt", 24, alpha=alpha)
     plan = layer_plan(cc, 3, geom)
@@ -223,13 +222,12 @@ def test_best_is_the_first_index_reaching_each_rows_max(na, nb, lead, width):
         a[..., 4, :] = np.nan
     a, d = matching.normalize(jnp.asarray(a)), matching.normalize(jnp.asarray(d))
     top, arg = jax.jit(matching._best, static_argnums=2)(a, d, nb)
-    sims = np.einsum("...ic,...jc->...ij", np.asarray(a), np.asarray(d))
-    got_sims = np.asarray(jnp.einsum("...ic,...jc->...ij", a, d, precision="highest"))
-    want = np.where(np.isnan(got_sims).any(-1), nb - 1, np.argmax(np.where(np.isnan(got_sims), -np.inf, got_sims), -1))
+    sims = np.asarray(jnp.einsum("...ic,...jc->...ij", a, d, precision="highest"))
+    nan_row = np.isnan(sims).any(-1)
+    want = np.where(nan_row, nb - 1, np.argmax(np.where(np.isnan(sims), -np.inf, sims), -1))
     np.testing.assert_array_equal(np.asarray(arg), want)
-    finite = ~np.isnan(sims).any(-1)
-    np.testing.assert_array_equal(np.asarray(top)[finite], got_sims.max(-1)[finite])
-    assert not np.isfinite(np.asarray(top)[~finite]).any()  # (NaN, or -inf: XLA:CPU's max of NaN varies)
+    np.testing.assert_array_equal(np.asarray(top)[~nan_row], sims.max(-1)[~nan_row])
+    assert not np.isfinite(np.asarray(top)[nan_row]).any()  # (NaN, or -inf: XLA:CPU's max of NaN varies)
 
 
 @pytest.mark.parametrize("shape, r", [((2, 100), 37), ((1, 3, 50), 20), ((1, 5000), 4000), ((2, 40), 0),
