@@ -98,12 +98,10 @@ def _best(a: jax.Array, d: jax.Array, nb: int, rank: jax.Array | None = None) ->
     if rank is not None or c is None:
         # one level: the max, then the first index reaching it (a select XLA:CPU writes
         # out and reads again; its argmax, a variadic reduce, is 3x slower)
-        if rank is None:
-            rank = jnp.arange(sims.shape[-1], dtype=jnp.float32)
-        else:
+        if rank is not None:
             sims = jnp.where(rank >= 0, sims, -jnp.inf)
         top = jnp.max(sims, axis=-1)
-        first = jnp.min(jnp.where(sims >= top[..., None], rank, np.float32(nb)), axis=-1)
+        first = _first_reaching(sims, top, rank, nb)
         return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
     # Two levels, so that the similarities are read once after the matmul writes them:
     # the max of every chunk of c columns, the row's max from those, the first chunk
@@ -124,11 +122,14 @@ def _best(a: jax.Array, d: jax.Array, nb: int, rank: jax.Array | None = None) ->
     return top, jnp.minimum(first, nb - 1).astype(jnp.int32)
 
 
-def _first_reaching(x: jax.Array, top: jax.Array) -> jax.Array:
+def _first_reaching(x: jax.Array, top: jax.Array, index: jax.Array | None = None, none: int | None = None
+                    ) -> jax.Array:
     """x [..., n], top [...] -> the first index (float32) along the last axis with x >= top,
-    n where none does (top NaN)."""
+    `none` (default n) where none does (top NaN). `index` [n] float32: the columns'
+    indices (default 0..n-1; a device's dst block passes its ranks)."""
     n = x.shape[-1]
-    return jnp.min(jnp.where(x >= top[..., None], jnp.arange(n, dtype=jnp.float32), np.float32(n)), axis=-1)
+    index = jnp.arange(n, dtype=jnp.float32) if index is None else index
+    return jnp.min(jnp.where(x >= top[..., None], index, np.float32(n if none is None else none)), axis=-1)
 
 
 def _src_rows_per_block(na: int, b: int, dst_rows: int, chunk: int) -> int:
