@@ -201,7 +201,7 @@ def _storing(plan) -> bool:
 def rope_tables(geom: compression.Geometry, config: VGGTConfig, frames: int
                 ) -> tuple[layers.RopeTables, layers.RopeTables]:
     """The RoPE tables of every block, built once: one frame's [1, P, 1, D] and the
-    sequence's [1, frames * P, 1, D] (periodic when long: `RopeTables.of_sequence`)."""
+    sequence's [1, frames * P, 1, D] (one frame's rows, `chunks.Periodic`: `RopeTables.of_sequence`)."""
     frame_pos = layers.RopeTables.from_positions(
         jnp.asarray(layers.patch_positions(geom.h, geom.w, geom.num_special))[None], config.head_dim,
         config.rope_freq)

@@ -100,9 +100,9 @@ class RopeTables:
     A forward pass has two position sets (one frame, all frames) shared by its 48 blocks:
     building the tables once and passing them as `pos` keeps the trigonometry out of the
     blocks (XLA fuses cos/sin into every consumer, recomputing them per head and block:
-    ~15% of a global block on CPU). The whole sequence's tables (`of_sequence`) may be
-    `chunks.Periodic` (one frame's rows): the chunk loops slice them; `first` and
-    `frame_rows` read them either way."""
+    ~15% of a global block on CPU). The whole sequence's tables (`of_sequence`) are
+    `chunks.Periodic` (one frame's rows): the chunk loops slice them, a loop run in one
+    chunk tiles them in its body; `first` and `frame_rows` read them either way."""
 
     def __init__(self, cos: jax.Array, sin: jax.Array):
         self.cos, self.sin = cos, sin
@@ -119,13 +119,15 @@ class RopeTables:
 
     @classmethod
     def of_sequence(cls, frame: "RopeTables", frames: int) -> "RopeTables":
-        """The tables of `frames` frames in a row from one frame's [1, P, 1, D]: tiled, or,
-        when the tiled tables would exceed a token chunk (`chunks.TOKEN_CHUNK_BYTES`), as
-        `chunks.Periodic` arrays (one frame's rows, sliced per chunk: no table of the
-        whole sequence)."""
+        """The tables of `frames` frames in a row from one frame's [1, P, 1, D], as
+        `chunks.Periodic` arrays (one frame's rows), never tiled outside the blocks: a loop
+        over token chunks slices each chunk's rows from the period, and a loop run in one
+        chunk tiles them in its body, where XLA fuses the tiling into the RoPE product.
+        (Tiled once per forward, every global block read the [1, frames * P, 1, D] tables
+        from memory: at 64 frames of 168 x 224 in the speed layout, `regime`'s forward
+        took 1.7% longer, docs/benchmarks.md; at 1000 frames of VGGT-1B the tiled tables
+        were 2 x 266 MB.)"""
         n = frame.cos.shape[1] * frames
-        if n * frame.cos.shape[-1] * 4 <= chunks.TOKEN_CHUNK_BYTES:
-            return jax.tree.map(lambda t: jnp.tile(t, (1, frames, 1, 1)), frame)
         return cls(chunks.Periodic(frame.cos, n), chunks.Periodic(frame.sin, n))
 
     def _leading(self, fn) -> "RopeTables":

@@ -53,15 +53,18 @@ def test_layer_norm_of_any_rank_normalises_each_row(shape):
     np.testing.assert_array_equal(np.asarray(out).reshape(-1, shape[-1]), np.asarray(flat))
 
 
-def test_sequence_tables_are_periodic_only_when_long(monkeypatch):
+def test_sequence_tables_are_one_frames_rows():
+    # The sequence's tables are never tiled outside the blocks (every global block would
+    # read the tiled tables from memory): one frame's rows, `chunks.Periodic`, at any
+    # length; tiled, they are the frame's tables repeated.
     frame = layers.RopeTables.from_positions(jnp.asarray(layers.patch_positions(2, 3, 1))[None], 8, 100.0)
-    short = layers.RopeTables.of_sequence(frame, 4)
-    assert not isinstance(short.cos, chunks.Periodic) and short.cos.shape == (1, 28, 1, 8)
-    monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 28 * 8 * 4 - 1)
-    long = layers.RopeTables.of_sequence(frame, 4)
-    assert isinstance(long.cos, chunks.Periodic) and long.cos.shape == (1, 28, 1, 8)
-    for a, b in ((long.cos.whole(), short.cos), (long.sin.whole(), short.sin)):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    seq = layers.RopeTables.of_sequence(frame, 4)
+    assert isinstance(seq.cos, chunks.Periodic) and isinstance(seq.sin, chunks.Periodic)
+    assert seq.cos.shape == (1, 28, 1, 8) and seq.cos.period.shape == (1, 7, 1, 8)
+    for a, b in ((seq.cos.whole(), frame.cos), (seq.sin.whole(), frame.sin)):
+        np.testing.assert_array_equal(np.asarray(a), np.tile(np.asarray(b), (1, 4, 1, 1)))
+    short = layers.RopeTables(seq.cos.whole(), seq.sin.whole())  # the same tables, tiled
+    long = seq
     # a frame's rows and the first rows, from the period
     local = jnp.asarray([[0, 6], [3, 1]])
     for t in (short, long):

@@ -7,6 +7,8 @@ blocks), and bfloat16 must need clearly less than float32."""
 
 import dataclasses
 
+import jax
+import jax.numpy as jnp
 import pytest
 
 import rvggt_jax
@@ -144,15 +146,19 @@ def test_16bit_chunk_outputs_are_written_in_place(fn):
     assert compiled.memory_analysis().temp_size_in_bytes < result_bytes / 4
 
 
-def test_long_sequence_rope_tables_are_never_formed_whole(plans, monkeypatch):
-    # When a sequence's RoPE tables would exceed a token chunk (2 x 266 MB at 1000 frames
-    # of VGGT-1B), they are held as one frame's rows (chunks.Periodic) and each chunk loop
-    # takes its rows: no array of the compiled forward has a row per token of the sequence
-    # and the head dimension [1, S*P, 1, D] (checked on a 22-frame plan with a 1 MiB chunk;
-    # the suite's 200-frame plan, whose tiled tables fit the default chunk, has them).
-    # (22 frames: a cached trace of the suite's frame count would not see the patch.)
+def test_sequence_rope_tables_are_never_formed_whole(plans, monkeypatch):
+    # The global blocks' RoPE tables are held as one frame's rows (chunks.Periodic): a loop
+    # over token chunks takes each chunk's rows mod the frame, a loop run in one chunk
+    # tiles them in its body, where XLA fuses the tiling into the RoPE product. So no
+    # array of the compiled forward has a row per token of the sequence and the head
+    # dimension [1, S*P, 1, D] (2 x 266 MB at 1000 frames of VGGT-1B): neither in the
+    # suite's 200-frame plan (every loop in one chunk) nor in a 22-frame plan with a 1 MiB
+    # chunk (the chunked loops). The pattern itself is checked on a program that does
+    # form such an array. (22 frames: a cached trace of the suite's frame count would not
+    # see the patch.)
     import re
 
+    from rvggt_jax.model import layers
     from rvggt_jax.ops import chunks
 
     cfg = BASE.with_compression("regime")
@@ -161,7 +167,10 @@ def test_long_sequence_rope_tables_are_never_formed_whole(plans, monkeypatch):
     def has_tables(text, frames):
         return re.search(rf"f32\[1,{frames * per_frame},1,{cfg.head_dim}\]", text) is not None
 
-    assert has_tables(plans["regime", "float32"].compiled.as_text(), S)
+    frame = layers.RopeTables.from_positions(jnp.zeros((1, per_frame, 2), jnp.int32), cfg.head_dim, cfg.rope_freq)
+    tiled = jax.jit(lambda c: jnp.tile(c, (1, S, 1, 1)) * 2.0).lower(frame.cos).compile()
+    assert has_tables(tiled.as_text(), S)
+    assert not has_tables(plans["regime", "float32"].compiled.as_text(), S)
     monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2**20)
     assert 22 * per_frame * cfg.head_dim * 4 > chunks.TOKEN_CHUNK_BYTES
     assert not has_tables(rvggt_jax.memory_report(cfg, 22, H, W).compiled.as_text(), 22)
