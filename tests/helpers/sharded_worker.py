@@ -210,8 +210,8 @@ def main() -> None:
         report["runs"].append(run)
         tick(f"{devices} devices {preset}")
     # the long-sequence routes on each device (as at 1000 frames): a token chunk of 2 KiB
-    # makes the device's RoPE tables periodic (chunks.Periodic) and every loop run in
-    # chunks; against the single-device forward of the default chunks
+    # runs every loop in chunks, each taking its rows of the device's RoPE tables from one
+    # frame's (chunks.Periodic); against the single-device forward of the default chunks
     from rvggt_jax.ops import chunks
     from rvggt_jax.model import layers
 

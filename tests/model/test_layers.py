@@ -63,12 +63,11 @@ def test_sequence_tables_are_one_frames_rows():
     assert seq.cos.shape == (1, 28, 1, 8) and seq.cos.period.shape == (1, 7, 1, 8)
     for a, b in ((seq.cos.whole(), frame.cos), (seq.sin.whole(), frame.sin)):
         np.testing.assert_array_equal(np.asarray(a), np.tile(np.asarray(b), (1, 4, 1, 1)))
-    short = layers.RopeTables(seq.cos.whole(), seq.sin.whole())  # the same tables, tiled
-    long = seq
-    # a frame's rows and the first rows, from the period
+    tiled = layers.RopeTables(seq.cos.whole(), seq.sin.whole())
+    # a frame's rows and the first rows, from the period and from the tiled tables
     local = jnp.asarray([[0, 6], [3, 1]])
-    for t in (short, long):
+    for t in (tiled, seq):
         np.testing.assert_array_equal(np.asarray(t.first(7).cos), np.asarray(frame.cos))
         np.testing.assert_array_equal(np.asarray(t.frame_rows(local).sin), np.asarray(frame.sin[0][local]))
     with pytest.raises(ValueError, match="8 rows asked of RoPE tables holding 7"):
-        long.first(8)
+        seq.first(8)
