@@ -168,7 +168,7 @@ def test_sequence_rope_tables_are_never_formed_whole(plans, monkeypatch):
         return re.search(rf"f32\[1,{frames * per_frame},1,{cfg.head_dim}\]", text) is not None
 
     frame = layers.RopeTables.from_positions(jnp.zeros((1, per_frame, 2), jnp.int32), cfg.head_dim, cfg.rope_freq)
-    tiled = jax.jit(lambda c: jnp.tile(c, (1, S, 1, 1)) * 2.0).lower(frame.cos).compile()
+    tiled = jax.jit(lambda c: chunks.Periodic(c, S * per_frame).whole()).lower(frame.cos).compile()
     assert has_tables(tiled.as_text(), S)
     assert not has_tables(plans["regime", "float32"].compiled.as_text(), S)
     monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2**20)
