@@ -1,17 +1,20 @@
 """How busy the host was with other work while a benchmark timed something.
 
-This machine is shared: another tenant's process can take a core for minutes, and a
-2-core run timed then says more about that process than about the code. `bench_peers.py`
-records, around every timed call, the CPU time the whole host spent (Linux `/proc/stat`,
-steal time included: the hypervisor giving our cores to another guest) and the CPU time
-of the processes being measured (this one, and the peer's subprocess). What is left,
-divided by the wall time, is the number of cores other processes held meanwhile:
-0 on a quiet host, 1 when something else kept one core busy the whole time. The other
-side of a comparison counts as "other" too: a peer's threads still spinning while ours
-run, or ours while the peer runs, are load on the call being timed.
+This machine is shared: another process can take a core for minutes, and a 2-core run
+timed then says more about that process than about the code. `bench_peers.py` records,
+around every timed call, the CPU time the whole (virtual) machine spent (Linux
+`/proc/stat`, steal time included: the hypervisor giving our cores to another guest) and
+the CPU time of the process running the call (this one for ours, the peer's worker for
+a peer's). What is left, divided by the wall time, is the number of cores other
+processes held meanwhile: 0 on a quiet machine, 1 when something else kept one core busy
+the whole time. The other side of a comparison counts as "other" too: a peer's threads
+still spinning while ours run, or ours while the peer runs, are load on the call timed.
 
-Resolution: the kernel counts in clock ticks (10 ms), so a 0.2 s call reads to about
-+-0.1 core. Where `/proc/stat` does not exist (not Linux), `others` is None.
+What this cannot see: a neighbour outside the virtual machine that shares its physical
+cores, cache or memory slows the same instructions without taking CPU time from it
+(docs/benchmarks.md, "Noise this machine cannot see"). Resolution: the kernel counts in
+clock ticks (10 ms), so a 0.2 s call reads to about +-0.1 core. Where `/proc/stat` does
+not exist (not Linux), `others` is None.
 """
 
 from __future__ import annotations
@@ -38,9 +41,10 @@ def host_busy_seconds(stat_text: str | None = None) -> float | None:
         if not PROC_STAT.exists():
             return None
         stat_text = PROC_STAT.read_text()
-    first = stat_text.splitlines()[0].split()
+    line = stat_text.splitlines()[0] if stat_text.strip() else ""
+    first = line.split()
     if not first or first[0] != "cpu":
-        raise ValueError(f"/proc/stat's first line is not the all-CPU total: {stat_text.splitlines()[0]!r}")
+        raise ValueError(f"/proc/stat's first line is not the all-CPU total: {line!r}")
     fields = [int(v) for v in first[1:]]
     return sum(fields[i] for i in _BUSY_FIELDS if i < len(fields)) / _ticks_per_second()
 

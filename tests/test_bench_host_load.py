@@ -22,8 +22,9 @@ def test_busy_seconds_are_every_field_but_idle_and_iowait():
 
 
 def test_a_stat_text_without_the_total_line_is_refused():
-    with pytest.raises(ValueError, match="all-CPU total"):
-        host_load.host_busy_seconds("cpu0 1 2 3 4\n")
+    for text in ("cpu0 1 2 3 4\n", ""):
+        with pytest.raises(ValueError, match="all-CPU total"):
+            host_load.host_busy_seconds(text)
 
 
 def test_others_are_the_host_busy_time_not_measured_per_wall_second():
