@@ -12,7 +12,8 @@ from safetensors.numpy import load_file
 
 import rvggt_jax
 from tests.helpers.paths import REPO, TINY
-from tests.helpers.sharded import SHARDED_DIR_ENV, WORKER, start_sharded_worker, stop_sharded_worker
+from tests.helpers.sharded import (SHARDED_DIR_ENV, WORKER, remove_report_dir, start_sharded_worker,
+                                   stop_sharded_worker)
 from tests.helpers.xla_flags import suite_flags
 
 # LLVM at -O0 for every program the suite compiles (tests/helpers/xla_flags.py: the same
@@ -91,6 +92,7 @@ def pytest_sessionstart(session):
     where = tempfile.mkdtemp(prefix="rvggt-sharded-")
     os.environ[SHARDED_DIR_ENV] = where  # inherited by pytest-xdist's workers, started after this
     WORKER["owner"] = True
+    WORKER["dir"] = where
     start_sharded_worker(Path(where))
 
 
@@ -98,6 +100,7 @@ def pytest_sessionfinish(session, exitstatus):
     import os
 
     stop_sharded_worker()
+    remove_report_dir()
     if WORKER.get("owner"):
         os.environ.pop(SHARDED_DIR_ENV, None)
     if os.environ.get("RVGGT_TEST_XLA_CACHE_OWNER") == str(os.getpid()):

@@ -16,7 +16,8 @@ from tests.helpers.xla_flags import suite_flags
 
 SHARDED_DIR_ENV = "RVGGT_SHARDED_DIR"
 WORKER_SCRIPT = HELPERS / "sharded_worker.py"
-WORKER: dict = {}  # "proc": the running worker; "owner": this process set $RVGGT_SHARDED_DIR
+WORKER: dict = {}  # "proc": the running worker; "owner": this process set $RVGGT_SHARDED_DIR; "dir": the
+# report folder this process made (removed when its session ends)
 
 
 def start_sharded_worker(where: Path) -> None:
@@ -49,12 +50,22 @@ def stop_sharded_worker() -> None:
         proc.wait()
 
 
+def remove_report_dir() -> None:
+    """Remove the report folder this process made, if any (after `stop_sharded_worker`)."""
+    import shutil
+
+    where = WORKER.pop("dir", None)
+    if where is not None:
+        shutil.rmtree(where, ignore_errors=True)
+
+
 def sharded_worker_result(timeout: float = 1800) -> tuple[int, str, str]:
     """(return code, stdout, stderr) of the worker: the one the session started, or one
     run now."""
     where = os.environ.get(SHARDED_DIR_ENV)
-    if where is None:
+    if where is None:  # (no worker started with the session: this process runs one, once)
         where = tempfile.mkdtemp(prefix="rvggt-sharded-")
+        WORKER["dir"] = os.environ[SHARDED_DIR_ENV] = where
         start_sharded_worker(Path(where))
     where = Path(where)
     deadline = time.monotonic() + timeout
