@@ -174,3 +174,50 @@ def test_sequence_rope_tables_are_never_formed_whole(plans, monkeypatch):
     monkeypatch.setattr(chunks, "TOKEN_CHUNK_BYTES", 2**20)
     assert 22 * per_frame * cfg.head_dim * 4 > chunks.TOKEN_CHUNK_BYTES
     assert not has_tables(rvggt_jax.memory_report(cfg, 22, H, W).compiled.as_text(), 22)
+
+
+def _written_constants(text: str, min_bytes: int = 2**20) -> list[str]:
+    """The fusions of a compiled program's text that write one scalar constant out to an
+    array of at least `min_bytes` (float32)."""
+    import re
+
+    consts = set(re.findall(r"%(constant[\w.]*) = f32\[\] constant\(", text))
+    found = []
+    for m in re.finditer(r"%([\w.\-]+) = f32\[([\d,]+)\]\S* fusion\(%([\w.\-]+)\), kind=kLoop", text):
+        size = 4
+        for d in m.group(2).split(","):
+            size *= int(d)
+        if m.group(3) in consts and size >= min_bytes:
+            found.append(m.group(0))
+    return found
+
+
+def test_no_trigonometry_or_written_constants_in_the_forward(plans):
+    # The RoPE tables are constants of the program (`aggregator.rope_tables`): computed in
+    # it, XLA:CPU fused cos and sin into their consumers outside the layer loops, taking
+    # them again for every token (this plan of `regime` had them too). No scalar constant
+    # is written out as a large array: GELU's constants, as scalars, were merged across
+    # the blocks outside a loop with one MLP shape and written out in full for their
+    # YNNPACK fusions (the speed layout at 64 frames, docs/benchmarks.md; not this plan,
+    # where the check guards against new cases). Both checks also run on programs that
+    # have what they look for.
+    import re
+
+    from rvggt_jax.model import layers
+
+    trig = re.compile(r" (cosine|sine)\(")
+    for preset in ("dense", "regime"):
+        text = plans[preset, "float32"].compiled.as_text()
+        assert trig.search(text) is None, preset
+        assert _written_constants(text) == [], preset
+    cfg = BASE.with_compression("regime")
+    traced = jax.jit(lambda pos: layers.RopeTables.from_positions(pos, cfg.head_dim, cfg.rope_freq).cos)
+    assert trig.search(traced.lower(jnp.zeros((1, 8, 2), jnp.int32)).compile().as_text())
+
+    def attend(q, k, v):  # (XLA:CPU writes out softmax's divisor constant, [64, 1, 197], for both)
+        w = jax.nn.softmax(jnp.einsum("bqhd,bkhd->bhqk", q, k), axis=-1)
+        return jnp.einsum("bhqk,bkhd->bqhd", w, v)
+
+    x = jax.ShapeDtypeStruct((64, 197, 1, 64), jnp.float32)
+    two = jax.jit(lambda q, k, v: attend(attend(q, k, v) + q, k, v)).lower(x, x, x).compile().as_text()
+    assert _written_constants(two, min_bytes=64 * 197 * 4)
