@@ -21,7 +21,7 @@ import numpy as np
 from rvggt_jax.ops.attention import attention
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.chunks import map_tokens, update_tokens
-from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.ordering import with_dependency, zeros_from
 from rvggt_jax.model.params import Params
 
 # Upstream's aggregator, camera head and DPT use torch's LayerNorm default; DINOv2 uses 1e-6.
@@ -170,6 +170,9 @@ def rope_2d(x: jax.Array, pos: "jax.Array | RopeTables", freq: float | None = No
     x [B, N, H, D]; pos [B|1, N, 2] integer (y, x) positions (with `freq`), or their
     precomputed `RopeTables`."""
     tables = pos if isinstance(pos, RopeTables) else RopeTables.from_positions(pos, x.shape[-1], freq)
+    # (the tables made from x, the same values: constants broadcast to one shape are merged
+    # across the blocks outside a loop, and XLA:CPU writes the merged broadcast out)
+    tables = RopeTables(with_dependency(tables.cos, x), with_dependency(tables.sin, x))
     q = x.shape[-1] // 4
     # rotate-half within each half: (a, b, c, d) quarters -> (-b, a, -d, c)
     rotated = jnp.concatenate([-x[..., q:2 * q], x[..., :q], -x[..., 3 * q:], x[..., 2 * q:3 * q]], axis=-1)
