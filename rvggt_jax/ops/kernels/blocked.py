@@ -29,7 +29,7 @@ import jax.numpy as jnp
 
 from rvggt_jax.ops.bits import Bits16, is_16bit_float, read_buffer
 from rvggt_jax.ops.chunks import dynamic_index
-from rvggt_jax.ops.ordering import with_dependency, zeros_from
+from rvggt_jax.ops.ordering import zeros_from
 from rvggt_jax.ops.precision import precision_scope
 
 # Bytes of one logits block: a block that stays in L2/L3 and gives the value matmul
@@ -79,9 +79,11 @@ def _forward(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
     op passes False for the programs it compiles for other platforms)."""
     b, nq, h, d = q.shape
     nk, dv = k.shape[1], v.shape[-1]
-    # (the scale made from q, the same value: a constant broadcast to q's shape is merged
-    # across the blocks outside a loop, and XLA:CPU writes the merged broadcast out)
-    qt = (q * with_dependency(jnp.asarray(scale, q.dtype), q)).transpose(0, 2, 1, 3)  # [B, H, Nq, D]
+    # (the scale stays a constant: XLA:CPU writes its broadcast out once for the frame
+    # blocks a plan runs outside a loop, 3.2 MB at 64 frames of the speed layout, but made
+    # from q it changes the logits' last bits, and a near-tie merge decision of `fastvggt`
+    # at 16 frames went the other way than FastVGGT's code: docs/benchmarks.md)
+    qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)  # [B, H, Nq, D]
     kh = k.transpose(0, 2, 1, 3)  # [B, H, Nk, D]
     vt = v.transpose(0, 2, 1, 3)  # [B, H, Nk, Dv]
     bias = None if key_bias is None else key_bias[:, None, None, :]  # [B, 1, 1, Nk]
