@@ -204,11 +204,10 @@ def rope_tables(geom: compression.Geometry, config: VGGTConfig, frames: int
     sequence's [1, frames * P, 1, D] (one frame's rows, `chunks.Periodic`: `RopeTables.of_sequence`).
 
     They are constants of the program, computed by XLA while tracing (the positions are
-    static). Computed inside the program, cos and sin were fused
-    into their consumers outside the layer loops (the blocks a plan runs once), which
-    took them again for every token: at 64 frames of `regime` in the speed layout, six
-    [S*P, D] fusions of the merged Q/K took 1.1-2.3 ms each instead of ~0.15 ms
-    (docs/benchmarks.md)."""
+    static). Computed inside the program, cos and sin were fused into their consumers
+    outside the layer loops (the blocks a plan runs once), which took them again for every
+    token: at 64 frames of `regime` in the speed layout, six [S*P, D] fusions of the merged
+    Q/K took 1.1-2.3 ms each instead of ~0.15 ms (docs/benchmarks.md)."""
     with jax.ensure_compile_time_eval():
         frame_pos = layers.RopeTables.from_positions(
             jnp.asarray(layers.patch_positions(geom.h, geom.w, geom.num_special))[None], config.head_dim,
