@@ -83,17 +83,14 @@ def _selects_sharded(config) -> bool:
 @pytest.hookimpl(tryfirst=True)
 def pytest_sessionstart(session):
     import os
-    import tempfile
 
     if os.environ.get("PYTEST_XDIST_WORKER") or SHARDED_DIR_ENV in os.environ:
         return  # a pytest-xdist worker: the first process started it (and set the variable)
     if session.config.getoption("collectonly", False) or not _selects_sharded(session.config):
         return
-    where = tempfile.mkdtemp(prefix="rvggt-sharded-")
-    os.environ[SHARDED_DIR_ENV] = where  # inherited by pytest-xdist's workers, started after this
+    # inherited by pytest-xdist's workers, started after this
+    os.environ[SHARDED_DIR_ENV] = start_sharded_worker()
     WORKER["owner"] = True
-    WORKER["dir"] = where
-    start_sharded_worker(Path(where))
 
 
 def pytest_sessionfinish(session, exitstatus):

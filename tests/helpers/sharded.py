@@ -20,9 +20,12 @@ WORKER: dict = {}  # "proc": the running worker; "owner": this process set $RVGG
 # report folder this process made (removed when its session ends)
 
 
-def start_sharded_worker(where: Path) -> None:
-    """Run the worker in the background: its stdout, stderr and return code go to files
-    in `where` (out.json, err.txt, rc: written last)."""
+def start_sharded_worker() -> str:
+    """Run the worker in the background, reporting into a new folder (returned; removed
+    by `remove_report_dir` when the session ends): its stdout, stderr and return code go
+    to files there (out.json, err.txt, rc: written last)."""
+    where = Path(tempfile.mkdtemp(prefix="rvggt-sharded-"))
+    WORKER["dir"] = str(where)
     # (the worker sets its own device count; of the session's XLA flags it keeps only the
     # suite's compile options)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
@@ -34,6 +37,7 @@ def start_sharded_worker(where: Path) -> None:
         [sys.executable, "-c", launcher, str(WORKER_SCRIPT),
          str(where / "out.json"), str(where / "err.txt"), str(where / "rc")], env=env,
         start_new_session=True)  # (a process group of its own: stop_sharded_worker ends the worker too)
+    return str(where)
 
 
 def stop_sharded_worker() -> None:
@@ -64,9 +68,7 @@ def sharded_worker_result(timeout: float = 1800) -> tuple[int, str, str]:
     run now."""
     where = os.environ.get(SHARDED_DIR_ENV)
     if where is None:  # (no worker started with the session: this process runs one, once)
-        where = tempfile.mkdtemp(prefix="rvggt-sharded-")
-        WORKER["dir"] = os.environ[SHARDED_DIR_ENV] = where
-        start_sharded_worker(Path(where))
+        where = os.environ[SHARDED_DIR_ENV] = start_sharded_worker()
     where = Path(where)
     deadline = time.monotonic() + timeout
     while not (where / "rc").exists():
