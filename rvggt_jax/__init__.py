@@ -13,7 +13,7 @@ from rvggt_jax.config import VGGTConfig
 _LAZY = {
     "rvggt_forward": "rvggt_jax.model.forward",
     "as_query_points": "rvggt_jax.model.forward",
-    "InputError": "rvggt_jax.model.forward",
+    "InputError": "rvggt_jax.errors",
     "InputRangeWarning": "rvggt_jax.model.input_range",
     "warn_if_out_of_range": "rvggt_jax.model.input_range",
     "load_pretrained": "rvggt_jax.weights.pretrained",
