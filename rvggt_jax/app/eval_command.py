@@ -3,6 +3,7 @@
     rvggt eval --dataset 7scenes --root /data/7scenes --weights W --presets dense,regime --stride 10 --out ev/
     rvggt eval --dataset images --root my_images/ --against dense --presets regime,fastvggt --out ev/
     rvggt eval --dataset tnt --root /tmp/syn --synthetic --presets dense,regime --size 70 --out ev/
+    rvggt eval --dataset kitti --root /data/kitti/dataset --weights W --chunk-frames 60 --overlap 15 --out ev/
 
 `rvggt_jax.app.cli` registers the sub-command (`add_eval_parser`) and calls `run_eval_command`.
 """
@@ -13,7 +14,7 @@ import argparse
 import time
 from pathlib import Path
 
-__all__ = ["add_eval_parser", "run_eval_command", "write_synthetic_set"]
+__all__ = ["SequencePredictor", "add_eval_parser", "run_eval_command", "write_synthetic_set"]
 
 SYNTHETIC_SCENES = 2
 RANDOM_WEIGHTS_NOTICE = (
@@ -56,6 +57,14 @@ def add_eval_parser(sub) -> None:
     p.add_argument("--synthetic", action="store_true",
                    help=f"first write {SYNTHETIC_SCENES} small procedural scenes with exact ground truth into --root, "
                         "in --dataset's format")
+    q = p.add_argument_group("long sequences (--dataset kitti, tum)")
+    q.add_argument("--chunk-frames", type=int, default=None, metavar="C",
+                   help="predict each sequence in chunks of C frames, chained by Sim(3) on their shared frames "
+                        "(default: one forward over all selected frames)")
+    q.add_argument("--overlap", type=int, default=None, metavar="O",
+                   help="frames shared by consecutive chunks (default: a quarter of --chunk-frames)")
+    q.add_argument("--loop-closure", action="store_true",
+                   help="close loops between chunks with a pose graph before scoring")
     p.add_argument("--no-plots", action="store_true", help="skip the plots")
     p.add_argument("--quiet", action="store_true", help="no progress bars or messages")
 
@@ -78,6 +87,66 @@ def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES
                                    name=f"synthetic_{i + 1:03d}"), dataset, root) for i in range(scenes)]
 
 
+class SequencePredictor:
+    """`evaluate`'s predictor for chunked runs: (preset, image_paths, scene=) -> ({"extrinsics"
+    [S, 3, 4], "intrinsics" [S, 3, 3]}, cost) through
+    `rvggt_jax.app.long_sequence.predict_sequence`. time_s includes compilation (each
+    chunk shape compiles once); compile_s and mem_gb are not measured (None)."""
+
+    def __init__(self, weights: str, *, chunk_frames: int, overlap: int, loop_closure: bool = False,
+                 size: int = 518, quiet: bool = True):
+        import rvggt_jax
+
+        if size != 518:  # the chunked pipeline reads images as `rvggt reconstruct` does
+            raise ValueError("--size applies to one-forward runs only: the chunked pipeline runs at width 518")
+        self.params, self.config = rvggt_jax.load_pretrained(weights, skip_track=True)
+        self.options = dict(chunk_frames=chunk_frames, overlap=overlap, loop_closure=loop_closure, mode="crop",
+                            cache_dir=None, quiet=quiet)
+
+    def __call__(self, preset: str, image_paths, scene=None, **_) -> tuple[dict, dict]:
+        import numpy as np
+
+        from rvggt_jax.app import long_sequence  # looked up per call: tests replace predict_sequence
+
+        paths = [Path(p) for p in image_paths]
+        t0 = time.perf_counter()
+        traj = long_sequence.predict_sequence(paths, self.params, self.config.with_compression(preset), **self.options)
+        elapsed = time.perf_counter() - t0
+        ext = np.asarray(traj.extrinsics, np.float64)
+        if ext.shape != (len(paths), 3, 4):
+            raise ValueError(f"the chunked prediction gave extrinsics of shape {list(ext.shape)} for "
+                             f"{len(paths)} images")
+        return (dict(extrinsics=ext, intrinsics=np.asarray(traj.intrinsics, np.float64)),
+                dict(time_s=elapsed, compile_s=None, mem_gb=None))
+
+
+def _sequence_options(args: argparse.Namespace) -> dict:
+    """The chunking settings of `args` checked: {} for a one-forward run, else
+    chunk_frames / overlap / loop_closure; CLIError (one line) otherwise."""
+    from rvggt_jax.eval.protocols import PROTOCOLS, SEQUENCE_DATASETS
+
+    given = [flag for flag, v in (("--chunk-frames", args.chunk_frames), ("--overlap", args.overlap),
+                                  ("--loop-closure", args.loop_closure)) if v not in (None, False)]
+    if not given:
+        return {}
+    proto = PROTOCOLS.get(args.dataset)
+    if proto is None or not proto.sequence:
+        _fail(f"{given[0]} applies to the sequence datasets ({', '.join(SEQUENCE_DATASETS)}) only, not "
+              f"--dataset {args.dataset}")
+    if args.chunk_frames is None:
+        _fail(f"{given[0]} needs --chunk-frames")
+    if args.against:
+        _fail("--chunk-frames scores against the ground truth: drop --against")
+    c = args.chunk_frames
+    o = max(1, c // 4) if args.overlap is None else args.overlap
+    if c < 2:
+        _fail(f"--chunk-frames must be at least 2; got {c}")
+    if not 1 <= o < c:
+        _fail(f"--overlap must be at least 1 (chunks are aligned on shared frames) and less than --chunk-frames "
+              f"({c}); got {o}")
+    return dict(chunk_frames=c, overlap=o, loop_closure=bool(args.loop_closure))
+
+
 def _fail(msg: str):
     from rvggt_jax.app.messages import CLIError
 
@@ -93,7 +162,7 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
     from rvggt_jax.eval.datasets import DatasetError
     from rvggt_jax.eval.protocols import AGAINST_HIGHER, AGAINST_METRICS, PROTOCOLS
     from rvggt_jax.eval.report import write_csv, write_markdown, write_plots
-    from rvggt_jax.eval.runner import EvalSettings, evaluate
+    from rvggt_jax.eval.runner import EvalSettings, Predictor, evaluate
 
     say = (lambda *_: None) if args.quiet else (lambda m: print(m, flush=True))
     presets = tuple(p.strip() for p in args.presets.split(",") if p.strip())
@@ -108,6 +177,7 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
         _fail(f"--stride must be at least 1; got {args.stride}")
     if args.size < 14 or args.size % 14:
         _fail(f"--size must be a positive multiple of 14; got {args.size}")
+    chunking = _sequence_options(args)
     if args.dataset == "images" and not args.against:
         _fail("--dataset images has no ground truth: add --against dense")
     weights = args.weights
@@ -129,11 +199,15 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
         dataset=args.dataset, root=str(root), presets=presets, out=str(out), weights=str(weights), frames=args.frames,
         stride=args.stride, sampling=args.sampling, seed=args.seed,
         scenes=tuple(s.strip() for s in args.scenes.split(",")) if args.scenes else None, size=args.size,
-        against=args.against, gt_root=args.gt_root)
+        against=args.against, gt_root=args.gt_root, **chunking)
     enable_compilation_cache()
+    factory = Predictor
+    if chunking:
+        def factory(w):
+            return SequencePredictor(w, size=args.size, quiet=args.quiet, **chunking)
     t0 = time.perf_counter()
     try:
-        rows = evaluate(settings, progress=not args.quiet, say=say)
+        rows = evaluate(settings, progress=not args.quiet, say=say, predictor_factory=factory)
     except (DatasetError, ValueError, FileNotFoundError) as e:
         _fail(_one_line(e))
     if not rows:

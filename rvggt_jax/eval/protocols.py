@@ -22,7 +22,8 @@ from rvggt_jax.eval.network_inputs import gt_points_at_network
 from rvggt_jax.eval.points import chamfer_distance, depth_abs_rel, nearest_distances, point_cloud_metrics
 from rvggt_jax.eval.trajectory import trajectory_errors
 
-__all__ = ["PROTOCOLS", "Protocol", "against_reference", "pred_points_from_depth"]
+__all__ = ["PROTOCOLS", "SEQUENCE_DATASETS", "Protocol", "against_reference", "pred_points_from_depth",
+           "score_trajectory"]
 
 CROP = 224
 """Side of the centre crop (network pixels at width 518) scored by the 7 Scenes / NRGBD
@@ -46,6 +47,7 @@ class Protocol:
     higher_is_better: tuple[str, ...] = ()
     source: str = ""
     stride_cap_half: bool = False  # NRGBD's loader: stride = min(K, n // 2)
+    sequence: bool = False  # a long trajectory: may be predicted in chunks (--chunk-frames)
 
     @property
     def headline(self) -> str:
@@ -200,6 +202,22 @@ def score_folder(scene, pred: dict, infos) -> dict[str, float]:
     return out
 
 
+# ---------------------------------------------------------------------------------------
+# long sequences (KITTI odometry, TUM RGB-D): trajectory errors
+# ---------------------------------------------------------------------------------------
+
+
+def score_trajectory(scene, pred: dict, infos=None) -> dict[str, float]:
+    """`trajectory_errors` on camera centres (`poses="c2w"`): ATE, ARE, RPE-trans,
+    RPE-rot (consecutive frames) after the Sim(3) (evo Umeyama, scale included: a
+    monocular prediction has no metric scale) that best fits the predicted centres onto
+    the ground truth; `scale` is that fit's scale. pred["extrinsics"] [S, 3, 4], in any
+    frame and scale (one forward's, or a chunked run's first chunk's). Needs S >= 3."""
+    if len(scene) < 3:
+        raise ValueError(f"scene {scene.name}: trajectory errors need at least 3 frames; got {len(scene)}")
+    return trajectory_errors(pred["extrinsics"], scene.extrinsics, poses="c2w")
+
+
 def against_reference(pred: dict, ref: dict) -> dict[str, float]:
     """How far one preset's outputs are from a reference run's (dense) on the same
     frames, without ground truth: camera AUC / RRA / RTA (30/15/5/3) with the reference
@@ -224,6 +242,8 @@ def against_reference(pred: dict, ref: dict) -> dict[str, float]:
     return out
 
 
+_TRAJ_METRICS = ("ate", "rpe_trans", "rpe_rot", "are")
+_SRC_TRAJ = "evo APE / RPE on camera centres after a Sim(3) alignment"
 _SRC_7N = "RegimeVGGT eval/eval_7andN.py (CUT3R criterion + accuracy/completion)"
 PROTOCOLS: dict[str, Protocol] = {
     "7scenes": Protocol("7scenes", ("acc", "acc_med", "comp", "comp_med", "nc", "nc_med"), score_dense_recon,
@@ -240,7 +260,10 @@ PROTOCOLS: dict[str, Protocol] = {
     "folder": Protocol("folder", ("auc@30", "auc@15", "auc@5", "auc@3", "ate", "are", "rpe_rot", "rpe_trans",
                                   "abs_rel", "chamfer"), score_folder,
                        higher_is_better=("auc@30", "auc@15", "auc@5", "auc@3"), source="this project"),
+    "kitti": Protocol("kitti", _TRAJ_METRICS, score_trajectory, sequence=True, source=_SRC_TRAJ),
+    "tum": Protocol("tum", _TRAJ_METRICS, score_trajectory, sequence=True, source=_SRC_TRAJ),
 }
+SEQUENCE_DATASETS = tuple(name for name, p in PROTOCOLS.items() if p.sequence)
 
 AGAINST_METRICS = ("auc@30", "auc@15", "auc@5", "auc@3", "abs_rel", "chamfer")
 AGAINST_HIGHER = ("auc@30", "auc@15", "auc@5", "auc@3")

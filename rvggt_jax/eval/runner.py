@@ -8,6 +8,11 @@ Layout of OUT:
 
 A result is reused when its settings (dataset, frames, weights, image size, ...) equal
 the current run's; anything else is recomputed.
+
+Long sequences (KITTI, TUM: `Protocol.sequence`) run in one forward like any scene, up
+to `MAX_ONE_FORWARD_FRAMES` frames; with `chunk_frames` set, the predictor gets the
+scene's image paths instead of network images and predicts them in overlapping chunks
+(the command line wires in `rvggt_jax.app.long_sequence.predict_sequence`).
 """
 
 from __future__ import annotations
@@ -25,14 +30,20 @@ from rvggt_jax.eval.datasets import load_scenes, sample_indices
 from rvggt_jax.eval.network_inputs import network_images
 from rvggt_jax.eval.protocols import PROTOCOLS, against_reference
 
-__all__ = ["EvalSettings", "Predictor", "evaluate"]
+__all__ = ["EvalSettings", "MAX_ONE_FORWARD_FRAMES", "Predictor", "evaluate"]
+
+MAX_ONE_FORWARD_FRAMES = 1000
+"""The most frames of a sequence dataset scored in one forward (ScanNet-50's largest
+protocol runs 1000): longer sequences need chunks, or fewer frames."""
 
 
 @dataclasses.dataclass(frozen=True)
 class EvalSettings:
     """One evaluation run. frames / stride / sampling / seed: frame selection (None =
     the protocol's default); against: None (score against ground truth) or a preset
-    name whose outputs are the reference; size: network image width."""
+    name whose outputs are the reference; size: network image width. chunk_frames /
+    overlap / loop_closure: predict a sequence dataset's scenes in chunks of that many
+    frames sharing `overlap` (None: one forward)."""
 
     dataset: str
     root: str
@@ -47,6 +58,9 @@ class EvalSettings:
     size: int = 518
     against: str | None = None
     gt_root: str | None = None
+    chunk_frames: int | None = None
+    overlap: int | None = None
+    loop_closure: bool = False
 
     def frame_selection(self) -> dict[str, Any]:
         p = PROTOCOLS.get(self.dataset)
@@ -56,8 +70,11 @@ class EvalSettings:
 
     def key(self, preset: str) -> dict[str, Any]:
         """What a stored result must match to be reused."""
-        return dict(dataset=self.dataset, preset=preset, weights=str(self.weights), size=self.size,
-                    against=self.against, **self.frame_selection())
+        key = dict(dataset=self.dataset, preset=preset, weights=str(self.weights), size=self.size,
+                   against=self.against, **self.frame_selection())
+        if self.chunk_frames is not None:  # only then: one-forward results stored before stay valid
+            key.update(chunk_frames=self.chunk_frames, overlap=self.overlap, loop_closure=self.loop_closure)
+        return key
 
 
 def scene_indices(settings: EvalSettings, n: int) -> list[int]:
@@ -68,6 +85,20 @@ def scene_indices(settings: EvalSettings, n: int) -> list[int]:
     if proto is not None and proto.stride_cap_half:
         stride = max(1, min(stride, n // 2))
     return sample_indices(n, stride=stride, frames=sel["frames"], how=sel["how"], seed=sel["seed"])
+
+
+def _inputs(settings: EvalSettings, scene) -> tuple[Any, Any]:
+    """What the predictor is given for the frames of `scene`: (network images [S, 3, H,
+    W], their `ImageInfo`s), or, for a chunked run, (the image paths, None): chunks are
+    loaded one at a time, never the whole sequence."""
+    if settings.chunk_frames is not None:
+        return list(scene.image_paths), None
+    proto = PROTOCOLS.get(settings.dataset)
+    if proto is not None and proto.sequence and len(scene) > MAX_ONE_FORWARD_FRAMES:
+        raise ValueError(f"{settings.dataset} sequence {scene.name} has {len(scene)} frames, more than one forward "
+                         f"takes here ({MAX_ONE_FORWARD_FRAMES}): add --chunk-frames C --overlap O (e.g. "
+                         "--chunk-frames 60 --overlap 15), or select fewer frames with --stride / --frames")
+    return network_images(scene.image_paths, settings.size)
 
 
 def _slug(name: str) -> str:
@@ -146,8 +177,9 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
     "mem_gb"}, or {"scene", "preset", "frames", "status": "OOM"} where the model ran out
     of memory (as the paper's tables mark it; kept on disk: delete the run's json to
     retry). `predictor_factory(weights)` -> callable(preset, images, scene=...) ->
-    (outputs, cost), `Predictor` unless testing. Raises DatasetError / ValueError for
-    bad input."""
+    (outputs, cost), `Predictor` unless testing; with `settings.chunk_frames`, `images`
+    is the scene's list of image paths and the outputs need only "extrinsics" [S, 3, 4].
+    Raises DatasetError / ValueError for bad input."""
     from tqdm.auto import tqdm
 
     opts = {"gt_root": Path(settings.gt_root)} if settings.gt_root else {}
@@ -156,6 +188,8 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
         raise ValueError(f"dataset {settings.dataset!r} has no ground truth: use --against dense")
     if settings.against is None and any(s.extrinsics is None for s in scenes):
         raise ValueError("these scenes have no cameras: use --against dense")
+    if settings.chunk_frames is not None and (settings.against or not PROTOCOLS[settings.dataset].sequence):
+        raise ValueError("chunked prediction is for sequence datasets scored against their ground truth")
     runs = Path(settings.out) / "runs"
     predictor = None
     rows: list[dict] = []
@@ -174,9 +208,9 @@ def evaluate(settings: EvalSettings, progress: bool = True, say: Callable[[str],
                 rows.append(doc["row"])
         if not todo:
             continue
+        images, infos = _inputs(settings, sub)  # first: a too-long sequence fails before the model loads
         if predictor is None:
             predictor = predictor_factory(settings.weights)
-        images, infos = network_images(sub.image_paths, settings.size)
         ref_pred = None
         if settings.against:
             try:

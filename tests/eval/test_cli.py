@@ -93,7 +93,7 @@ def test_eval_errors(capsys, tmp_path):
     out = ("--out", tmp_path / "o", "--quiet")
     one_error(capsys, ["--dataset", "tnt", "--root", tmp_path / "none", *out], "none")
     one_error(capsys, ["--dataset", "tnt", "--root", tmp_path, "--presets", "warp", *out], "warp")
-    one_error(capsys, ["--dataset", "kitti", "--root", tmp_path, *out], "kitti")
+    one_error(capsys, ["--dataset", "kittee", "--root", tmp_path, *out], "kittee")
     one_error(capsys, ["--dataset", "images", "--root", tmp_path, *out], "--against")
     one_error(capsys, ["--dataset", "tnt", "--root", tmp_path, "--size", "50", *out], "14")
     one_error(capsys, ["--dataset", "tnt", "--root", tmp_path, "--weights", tmp_path / "nockpt", *out], "nockpt")

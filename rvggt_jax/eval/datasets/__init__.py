@@ -18,8 +18,10 @@ from rvggt_jax.eval.datasets.base import SAMPLING, DatasetError, Scene, sample_i
 __all__ = ["FORMATS", "SAMPLING", "DatasetError", "Scene", "get_format", "load_scenes", "sample_indices"]
 
 FORMATS = {"7scenes": "sevenscenes", "nrgbd": "nrgbd", "scannet": "scannet", "tnt": "tnt", "dtu": "dtu",
-           "folder": "folder", "images": "images", "co3d": "co3d"}
-"""Dataset name -> module of this package."""
+           "folder": "folder", "images": "images", "co3d": "co3d", "kitti": "kitti", "tum": "tum"}
+"""Dataset name -> module of this package. kitti and tum are long sequences (cameras
+only); their modules also read and write bare trajectory files (`read_kitti_poses`,
+`write_kitti_poses`, `read_tum_trajectory`, `write_tum_trajectory`)."""
 
 
 def get_format(name: str) -> ModuleType:
