@@ -123,6 +123,9 @@ class VGGTConfig:
     # Output requests (static, so they live here): extra entries of rvggt_forward's dict.
     return_saliency: bool = False  # "saliency" [B,S,h*w] (Psi) and "patch_tokens" [B*S,h*w,C]
     return_layers: tuple[int, ...] = ()  # "aggregated_XX" [B,S,P,2C] for these layers
+    # "descriptors" [B,S,C]: each frame's place descriptor for loop detection in long
+    # sequences (rvggt_jax.sequence): its DINOv2 patch tokens, mean-pooled, unit length
+    return_descriptors: bool = False
     # "images" [B,S,3,H,W]: a copy of the input, which upstream always returns; on request
     # here (2.3 GiB of float32 at 1000 frames of 392 x 518, for what the caller has already)
     return_images: bool = False
@@ -218,10 +221,12 @@ class VGGTConfig:
         """The published facebook/VGGT-1B layout."""
         return cls()
 
-    def with_outputs(self, saliency: bool = False, layers: tuple[int, ...] = (), images: bool = False
-                     ) -> "VGGTConfig":
-        """A copy that also returns the saliency / these aggregator layers / the input images."""
-        return replace(self, return_saliency=saliency, return_layers=tuple(layers), return_images=bool(images))
+    def with_outputs(self, saliency: bool = False, layers: tuple[int, ...] = (), images: bool = False,
+                     descriptors: bool = False) -> "VGGTConfig":
+        """A copy that also returns the saliency / these aggregator layers / the input
+        images / the frames' place descriptors."""
+        return replace(self, return_saliency=saliency, return_layers=tuple(layers), return_images=bool(images),
+                       return_descriptors=bool(descriptors))
 
     def with_dtype(self, dtype: Any) -> "VGGTConfig":
         """A copy computing the aggregator in `dtype` ("float32" or "bfloat16")."""

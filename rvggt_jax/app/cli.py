@@ -89,6 +89,17 @@ def _positive_float(text: str) -> float:
     return v
 
 
+def _port(text: str) -> int:
+    """A TCP port, 1-65535 (viser's thread would fail on any other and the command hang)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1-65535, got {v}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
     from rvggt_jax import __version__
 
@@ -107,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
                                    "frustums with their images, frame selection) on http://localhost:PORT.")
     p.add_argument("out_dir", metavar="OUT_DIR", help="folder written by `rvggt reconstruct`")
-    p.add_argument("--port", type=int, default=8080, help="port on localhost (default %(default)s)")
+    p.add_argument("--port", type=_port, default=8080, help="port on localhost, 1-65535 (default %(default)s)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine only)")
 
     p = sub.add_parser("demo", help="run the pipeline on bundled images with a tiny RANDOM-weight model",
@@ -178,7 +189,32 @@ def _add_reconstruct_parser(sub, presets: str) -> None:
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="split the frames over N local devices, one forward pass (default: all of them when "
                         "there are several)")
+    _add_chunk_options(p)
     _add_ba_options(p)
+
+
+def _chunk_frames(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of frames or 'auto', got {text!r}") from None
+
+
+def _add_chunk_options(p: argparse.ArgumentParser) -> None:
+    """--chunk-frames, --overlap, --loop-closure (`rvggt_jax.app.long_sequence`)."""
+    g = p.add_argument_group("long sequences (frames in capture order: a video, or files named in order)")
+    g.add_argument("--chunk-frames", type=_chunk_frames, default=None, metavar="C|auto",
+                   help="predict the frames in chunks of C (auto: the largest the device fits), chained by Sim(3) "
+                        "on the frames consecutive chunks share; chunks are cached in OUT/chunks/ and a stopped "
+                        "run resumes; the point cloud is voxel-averaged to at most --max-points")
+    g.add_argument("--overlap", type=int, default=None, metavar="O",
+                   help="frames consecutive chunks share (default: a quarter of the chunk)")
+    g.add_argument("--loop-closure", action="store_true",
+                   help="close loops: revisits found from the frames' DINOv2 descriptors, verified by a forward "
+                        "over both places, all chunks' Sim(3)s optimised as a pose graph (gtsam: pip install "
+                        "\"rvggt-jax[sequence]\")")
 
 
 def _add_ba_options(p: argparse.ArgumentParser) -> None:
@@ -254,7 +290,8 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
         **common, mode=args.mode, max_frames=args.max_frames, every=args.every, fps=args.fps,
         skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, masks=args.masks, devices=args.devices,
         conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
-        all_colmap_points=args.all_colmap_points, ba=_ba_options(args))
+        all_colmap_points=args.all_colmap_points, ba=_ba_options(args), chunk_frames=args.chunk_frames,
+        overlap=args.overlap, loop_closure=args.loop_closure)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

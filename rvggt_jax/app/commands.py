@@ -17,7 +17,7 @@ from typing import Sequence
 
 from rvggt_jax.app.console import say, warn
 from rvggt_jax.app.messages import CLIError, one_line
-from rvggt_jax.app.model_runner import devices_mesh, enable_compilation_cache, load_model, resolve_weights, run_model
+from rvggt_jax.app.model_runner import check_memory as _check_memory, model_for as _model_for, resolve_weights, run_model
 from rvggt_jax.app.options import ReconstructOptions, select_frames
 
 EXAMPLES_DIR = Path(__file__).resolve().parents[1] / "examples_data"  # rvggt_jax/examples_data
@@ -132,20 +132,33 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
     video = _check_source(source, options)
     _check_weights(weights)
     chosen = None if video else _image_inputs(source, options)
+    if options.chunk_frames is not None and not video:
+        from rvggt_jax.app.long_sequence import check_frame_order
+
+        check_frame_order(chosen)
     if options.masks is not None:
         if video:
             raise CLIError("--masks takes masks named like the input images; the input is a video (extract its "
                            "frames to a folder first)")
         _mask_paths(chosen, options)  # a missing mask is said now, before the weights load
     created = not out_dir.exists()
-    _prepare_output(out_dir, options)
-    manifest = Manifest(out_dir)
+    resume = _resume_chunked(out_dir, options)
+    if not resume:
+        _prepare_output(out_dir, options)
+    # a resumed chunked run's manifest also lists what the stopped run wrote
+    manifest = Manifest(out_dir, carry=resume)
     try:
         # a hub repo id: download / convert now, before reading any input (a failure here
         # says what is missing without having made the user wait)
         local_weights = resolve_weights(weights, options.quiet)
         if video:
             chosen = _video_inputs(source, out_dir, options)
+        if options.chunk_frames is not None:
+            from rvggt_jax.app.long_sequence import reconstruct_chunked
+
+            summary = reconstruct_chunked(chosen, source, weights, local_weights, out_dir, options, manifest)
+            _tell_summary(summary, out_dir, options)
+            return summary
         return _reconstruct(chosen, source, weights, local_weights, out_dir, options)
     finally:
         if not manifest.write() and created:  # also after a failure: the next --overwrite removes exactly these
@@ -153,6 +166,18 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
                 out_dir.rmdir()  # a run that failed before writing anything leaves no empty folder behind
             except OSError:
                 pass
+
+
+def _resume_chunked(out_dir: Path, options: ReconstructOptions) -> bool:
+    """Whether this run continues a chunked run stopped in `out_dir` (same command, no
+    --overwrite): its cached chunks are reused (their settings are checked against this
+    run's before any is read, `long_sequence.check_run_file`)."""
+    from rvggt_jax.app.long_sequence import resumable
+
+    if options.chunk_frames is None or options.overwrite or not resumable(out_dir):
+        return False
+    say(options.quiet, f"{out_dir} holds a chunked run: continuing it (--overwrite starts over)")
+    return True
 
 
 def _check_source(source: Path, options: ReconstructOptions) -> bool:
@@ -295,42 +320,6 @@ def _stage_bar(stages: Sequence[str], quiet: bool):
         yield stage
 
 
-def _model_for(local_weights, weights, options: ReconstructOptions):
-    """`(params, config)` of the checkpoint with the options' preset and dtype applied."""
-    params, config = load_model(local_weights, options.quiet, name=weights, with_track=options.ba is not None)
-    if options.preset is not None:
-        import dataclasses
-
-        from rvggt_jax.diagnostics.presets_io import resolve_preset
-
-        try:
-            config = dataclasses.replace(config, compression=resolve_preset(options.preset, config.depth))
-        except ValueError as e:
-            raise CLIError(one_line(e)) from None
-    if options.points_from == "pointmap" and not config.enable_point:
-        raise CLIError(f"checkpoint {weights} has no point head; use --points depth")
-    if options.dtype != config.dtype:
-        from rvggt_jax.weights.checkpoint import cast_params
-
-        config, params = config.with_dtype(options.dtype), cast_params(params, options.dtype)
-    return params, config
-
-
-def _check_memory(config, shape: tuple[int, int, int], options: ReconstructOptions, image_dtype="float32"):
-    """`(report, mesh)`: XLA's own plan of this forward for `shape` = (frames, height,
-    width) (compiled, not run; the run uses the same compiled program), so that a forward
-    that does not fit is refused before running rather than dying in the middle."""
-    from rvggt_jax.planning.memory import InsufficientMemoryError, check_fits
-
-    enable_compilation_cache()
-    mesh = devices_mesh(options.devices)
-    try:
-        report = check_fits(config, *shape, param_dtype=options.dtype, mesh=mesh, image_dtype=image_dtype)
-    except (InsufficientMemoryError, ValueError) as e:
-        raise CLIError(str(e)) from None
-    return report, mesh
-
-
 def _mask_paths(chosen: list[Path], options: ReconstructOptions) -> list[Path]:
     """The mask file of each chosen image (`--masks`); `CLIError` naming a missing one."""
     from rvggt_jax.io.masks import MaskError, find_masks
@@ -388,7 +377,8 @@ def _tell_summary(summary: dict, out_dir: Path, options: ReconstructOptions) -> 
     if summary.get("colmap_renamed"):
         warn(f"COLMAP image names cannot contain spaces: {len(summary['colmap_renamed'])} name(s) written with "
              f"'_' in sparse/images.txt (e.g. {summary['colmap_renamed'][0][1]!r})")
-    say(options.quiet, f"wrote {out_dir}: {summary['frames']} cameras, {summary['points']} points "
+    chunks = f" from {summary['chunks']} chunks" if "chunks" in summary else ""
+    say(options.quiet, f"wrote {out_dir}: {summary['frames']} cameras{chunks}, {summary['points']} points "
                        f"(confidence >= {summary['conf_threshold']:.4g}) in {summary['seconds']:.1f} s")
 
 

@@ -43,9 +43,11 @@ def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None 
                 warn(str(w.message))
         return loaded
     except Exception as e:
-        if type(e).__name__ == "CheckpointError":
+        from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError
+
+        if isinstance(e, CheckpointError):
             raise CLIError(f"checkpoint {name} does not fit the model: {e}") from None
-        if type(e).__name__ == "CheckpointFileError":
+        if isinstance(e, CheckpointFileError):  # unreadable, damaged, non-finite: the message names it
             raise CLIError(str(e)) from None
         raise CLIError(f"cannot load checkpoint {name}: {one_line(e)}") from None
 
@@ -103,3 +105,39 @@ def devices_mesh(devices: int | None):
     except ValueError as e:
         raise CLIError(f"--devices {n}: {e}") from None
     return None if n == 1 else mesh
+
+
+def model_for(local_weights, weights, options: ReconstructOptions):
+    """`(params, config)` of the checkpoint with the options' preset and dtype applied."""
+    params, config = load_model(local_weights, options.quiet, name=weights, with_track=options.ba is not None)
+    if options.preset is not None:
+        import dataclasses
+
+        from rvggt_jax.diagnostics.presets_io import resolve_preset
+
+        try:
+            config = dataclasses.replace(config, compression=resolve_preset(options.preset, config.depth))
+        except ValueError as e:
+            raise CLIError(one_line(e)) from None
+    if options.points_from == "pointmap" and not config.enable_point:
+        raise CLIError(f"checkpoint {weights} has no point head; use --points depth")
+    if options.dtype != config.dtype:
+        from rvggt_jax.weights.checkpoint import cast_params
+
+        config, params = config.with_dtype(options.dtype), cast_params(params, options.dtype)
+    return params, config
+
+
+def check_memory(config, shape: tuple[int, int, int], options: ReconstructOptions, image_dtype="float32"):
+    """`(report, mesh)`: XLA's own plan of this forward for `shape` = (frames, height,
+    width) (compiled, not run; the run uses the same compiled program), so that a forward
+    that does not fit is refused before running rather than dying in the middle."""
+    from rvggt_jax.planning.memory import InsufficientMemoryError, check_fits
+
+    enable_compilation_cache()
+    mesh = devices_mesh(options.devices)
+    try:
+        report = check_fits(config, *shape, param_dtype=options.dtype, mesh=mesh, image_dtype=image_dtype)
+    except (InsufficientMemoryError, ValueError) as e:
+        raise CLIError(str(e)) from None
+    return report, mesh

@@ -82,6 +82,14 @@ class ReconstructOptions:
       overwrite: reuse a non-empty output folder, deleting the files the previous rvggt run
         there wrote (its manifest) and nothing else.
       quiet: no progress bars or messages (errors and warnings only).
+    Long sequences (`rvggt_jax.app.long_sequence`):
+      chunk_frames: predict the frames in chunks of this many (an int >= 2, or "auto": the
+        largest chunk the device's memory plan fits), aligned by Sim(3) on the frames
+        consecutive chunks share; None: one forward over every frame.
+      overlap: frames consecutive chunks share (>= 1, < chunk_frames; None: a quarter
+        of the chunk).
+      loop_closure: detect revisits from the frames' place descriptors, verify each with
+        a forward over both places, and optimise the chunks' Sim(3)s as a pose graph.
     Refinement:
       ba: bundle-adjust the predicted cameras with the track head's tracks and pycolmap
         (`rvggt_jax.ba.refine.BAOptions`: query frames and points, track filters, ...);
@@ -104,6 +112,9 @@ class ReconstructOptions:
     all_colmap_points: bool = False
     overwrite: bool = False
     quiet: bool = False
+    chunk_frames: int | str | None = None
+    overlap: int | None = None
+    loop_closure: bool = False
     ba: "BAOptions | None" = None  # noqa: F821 - rvggt_jax.ba.refine.BAOptions, imported when used
 
     def check(self) -> None:
@@ -135,8 +146,29 @@ class ReconstructOptions:
             raise CLIError(f"--every must be at least 1; got {self.every}")
         if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
             raise CLIError(f"--fps must be a positive number; got {self.fps}")
+        self._check_chunking()
         if self.ba is not None:
             try:
                 self.ba.check()
             except ValueError as e:
                 raise CLIError(str(e)) from None
+
+    def _check_chunking(self) -> None:
+        c, o = self.chunk_frames, self.overlap
+        if c is None:
+            given = [n for n, v in (("--overlap", o is not None), ("--loop-closure", self.loop_closure)) if v]
+            if given:
+                raise CLIError(f"{' and '.join(given)} only appl{'y' if len(given) > 1 else 'ies'} with --chunk-frames "
+                               f"(e.g. --chunk-frames 60 {' '.join(given)}{' 10' if o is not None else ''})")
+            return
+        if c != "auto" and (isinstance(c, bool) or not isinstance(c, int) or c < 2):
+            raise CLIError(f"--chunk-frames must be at least 2 (or auto); got {c} (e.g. --chunk-frames 60)")
+        if o is not None and o < 1:
+            raise CLIError(f"--overlap must be at least 1: consecutive chunks are aligned on the frames they share; "
+                           f"got {o} (e.g. --overlap {max(1, c // 4) if isinstance(c, int) else 10})")
+        if o is not None and isinstance(c, int) and o >= c:
+            raise CLIError(f"--overlap must be smaller than --chunk-frames {c}; got {o} (e.g. --overlap "
+                           f"{max(1, c // 4)})")
+        if self.ba is not None:
+            raise CLIError("--ba does not run with --chunk-frames yet (bundle adjustment needs every frame in one "
+                           "forward); drop one of them")

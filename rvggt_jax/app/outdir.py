@@ -112,13 +112,22 @@ class Manifest:
     """Records which files of `out` a run wrote: everything new or changed between
     construction and `write()` (the manifest file itself excluded)."""
 
-    def __init__(self, out: str | os.PathLike):
+    def __init__(self, out: str | os.PathLike, carry: bool = False):
+        """carry: also list the files the previous manifest in `out` lists that still
+        exist (a resumed run: what the stopped run wrote stays its to delete)."""
         self.out = Path(out)
         self.before = _files(self.out)
+        self.carried: set[str] = set()
+        if carry:
+            try:
+                self.carried = set(json.loads((self.out / MANIFEST_NAME).read_text())["files"])
+            except (OSError, ValueError, KeyError, TypeError):
+                self.carried = set()
 
     def written(self) -> list[str]:
         now = _files(self.out)
-        return sorted(k for k, v in now.items() if k != MANIFEST_NAME and self.before.get(k) != v)
+        return sorted(k for k, v in now.items()
+                      if k != MANIFEST_NAME and (self.before.get(k) != v or k in self.carried))
 
     def write(self) -> list[str]:
         """Record the files written since construction; a run that wrote nothing (it

@@ -13,7 +13,7 @@ from PIL import Image
 
 from rvggt_jax.io.plots import colorize
 
-__all__ = ["write_depth_pngs"]
+__all__ = ["write_depth_frames", "write_depth_pngs", "write_depth_scale"]
 
 PathLike = str | os.PathLike
 
@@ -27,26 +27,37 @@ def write_depth_pngs(folder: PathLike, stems: Sequence[str], depth: np.ndarray, 
     One scale for every frame: `depth = png_value * scale`, with the largest valid depth
     at 65535; 0 marks pixels without depth. Returns the scale.
     """
+    d, ok = _depth_and_valid(depth, valid, len(stems))
+    dmax = float(d[ok].max()) if ok.any() else 1.0
+    scale = dmax / 65535.0
+    write_depth_frames(folder, stems, d, ok, scale, preview_folder)
+    write_depth_scale(folder, scale, dmax, stems)
+    return scale
+
+
+def _depth_and_valid(depth, valid, frames: int) -> tuple[np.ndarray, np.ndarray]:
     d = np.asarray(depth, dtype=np.float64)
     if d.ndim == 4 and d.shape[-1] == 1:
         d = d[..., 0]
-    if d.ndim != 3 or d.shape[0] != len(stems):
-        raise ValueError(f"depth must be [S, H, W] with S = {len(stems)}; got {np.shape(depth)}")
+    if d.ndim != 3 or d.shape[0] != frames:
+        raise ValueError(f"depth must be [S, H, W] with S = {frames}; got {np.shape(depth)}")
     ok = np.isfinite(d) & (d > 0)
     if valid is not None:
         ok &= np.asarray(valid, dtype=bool)
-    dmax = float(d[ok].max()) if ok.any() else 1.0
-    scale = dmax / 65535.0
+    return d, ok
+
+
+def write_depth_frames(folder: PathLike, stems: Sequence[str], depth: np.ndarray, valid: np.ndarray | None,
+                       scale: float, preview_folder: PathLike | None = None) -> None:
+    """The PNGs of `write_depth_pngs` for some frames, at a given `scale` (a long run
+    writes them chunk by chunk, with the scale of the whole sequence); depth beyond
+    65535 x scale is clipped there."""
+    d, ok = _depth_and_valid(depth, valid, len(stems))
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for i, stem in enumerate(stems):
         q = np.where(ok[i], np.clip(np.round(d[i] / scale), 1, 65535), 0).astype(np.uint16)
         Image.fromarray(q).save(folder / f"{stem}.png")
-    with open(folder / "depth_scale.json", "w") as f:
-        json.dump(dict(scale=scale, formula="depth = png_value * scale (16-bit PNG); 0 = no depth",
-                       units="the model's depth units (scene scale normalised by the model, not metres)",
-                       max_depth=dmax, frames=list(stems)), f, indent=1)
-        f.write("\n")
     if preview_folder is not None:
         pf = Path(preview_folder)
         pf.mkdir(parents=True, exist_ok=True)
@@ -56,4 +67,14 @@ def write_depth_pngs(folder: PathLike, stems: Sequence[str], depth: np.ndarray, 
             # near = bright: colour inverse depth ranks
             img = colorize(-d[i], -hi, -lo, invalid=~ok[i])
             Image.fromarray(img).save(pf / f"{stem}.png")
-    return scale
+
+
+def write_depth_scale(folder: PathLike, scale: float, max_depth: float, stems: Sequence[str]) -> None:
+    """`folder/depth_scale.json`: how the PNGs' values map to depth."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "depth_scale.json", "w") as f:
+        json.dump(dict(scale=scale, formula="depth = png_value * scale (16-bit PNG); 0 = no depth",
+                       units="the model's depth units (scene scale normalised by the model, not metres)",
+                       max_depth=max_depth, frames=list(stems)), f, indent=1)
+        f.write("\n")

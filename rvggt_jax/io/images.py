@@ -42,6 +42,7 @@ __all__ = [
     "load_images",
     "load_images_with_info",
     "network_images",
+    "network_shape",
     "preprocessed_size",
 ]
 
@@ -177,6 +178,7 @@ def load_images_with_info(
     *,
     exif_orientation: bool = True,
     on_error: str = "raise",
+    pad_to: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, list[ImageInfo]]:
     """Load and preprocess images as upstream's `load_and_preprocess_images`.
 
@@ -191,6 +193,8 @@ def load_images_with_info(
       on_error: "raise" (default) stops at the first unreadable image; "skip" leaves
         it out (the returned infos then list only the images loaded: compare their
         `path` with `paths` to see which were skipped).
+      pad_to: (H, W): centre-pad with white to at least this size (a long run's
+        chunks all take their sequence's `network_shape`).
 
     Returns:
       images `[S, 3, H, W]` float32 in [0, 1]; images of different sizes are
@@ -245,18 +249,7 @@ def load_images_with_info(
         infos.append(dict(path=path, name=os.path.basename(path), width=width, height=height, sx=sx, sy=sy, ox=ox, oy=oy,
                           content=content))
 
-    shapes = {a.shape[1:] for a in arrays}
-    if len(shapes) > 1:
-        max_h = max(s[0] for s in shapes)
-        max_w = max(s[1] for s in shapes)
-        for i, arr in enumerate(arrays):
-            h_pad = max_h - arr.shape[1]
-            w_pad = max_w - arr.shape[2]
-            if h_pad > 0 or w_pad > 0:
-                top, left = h_pad // 2, w_pad // 2
-                arrays[i] = _pad_white(arr, top, h_pad - top, left, w_pad - left)
-                infos[i]["ox"] += left
-                infos[i]["oy"] += top
+    _pad_to_common(arrays, infos, pad_to)
     if not arrays:
         raise ImageLoadError(f"none of the {len(paths)} images could be read")
     images = np.stack(arrays).astype(np.float32, copy=False)
@@ -272,11 +265,59 @@ def load_images_with_info(
     return images, out_infos
 
 
+def _pad_to_common(arrays: list[np.ndarray], infos: list[dict], pad_to: tuple[int, int] | None) -> None:
+    """Centre-pad (white) each [3, h, w] of `arrays` in place to the largest height and
+    width among them and `pad_to`, moving its info's offsets with it."""
+    shapes = {a.shape[1:] for a in arrays} | ({tuple(pad_to)} if pad_to is not None and arrays else set())
+    if len(shapes) <= 1:
+        return
+    max_h = max(s[0] for s in shapes)
+    max_w = max(s[1] for s in shapes)
+    for i, arr in enumerate(arrays):
+        h_pad = max_h - arr.shape[1]
+        w_pad = max_w - arr.shape[2]
+        if h_pad > 0 or w_pad > 0:
+            top, left = h_pad // 2, w_pad // 2
+            arrays[i] = _pad_white(arr, top, h_pad - top, left, w_pad - left)
+            infos[i]["ox"] += left
+            infos[i]["oy"] += top
+
+
 def load_images(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_orientation: bool = True) -> np.ndarray:
     """Images `[S, 3, H, W]` float32 in [0, 1], equal to upstream's
     `load_and_preprocess_images(paths, mode)` (up to the departures in the module doc);
     see `load_images_with_info`."""
     return load_images_with_info(paths, mode, exif_orientation=exif_orientation)[0]
+
+
+def network_shape(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_orientation: bool = True,
+                  on_error: str = "raise") -> tuple[tuple[int, int], list[str]]:
+    """`((H, W), unreadable)`: the network input size `load_images_with_info` gives all of
+    `paths` together, from the files' headers alone (no decoding: fast for thousands of
+    frames), and the paths whose header cannot be read (skipped with on_error="skip";
+    "raise": `ImageLoadError` naming the first)."""
+    _check_mode(mode)
+    height = width = 0
+    bad = []
+    for path in map(os.fspath, paths):
+        try:
+            with Image.open(path) as img:
+                w, h = img.size
+                # orientations 5-8 turn the picture a quarter turn
+                if exif_orientation and img.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+                    w, h = h, w
+            nw, nh = preprocessed_size(w, h, mode)
+        except (OSError, SyntaxError, ValueError, UnidentifiedImageError, Image.DecompressionBombError) as e:
+            if on_error == "skip":
+                bad.append(path)
+                continue
+            raise ImageLoadError(f"cannot read image {path}: {e}") from None
+        if mode == "pad":
+            nw, nh = TARGET_SIZE, TARGET_SIZE
+        else:
+            nh = min(nh, TARGET_SIZE)
+        height, width = max(height, nh), max(width, nw)
+    return (height, width), bad
 
 
 def network_images(images: np.ndarray) -> np.ndarray:

@@ -72,7 +72,9 @@ def load_masks(mask_paths: Sequence[str | os.PathLike], infos: Sequence[ImageInf
     if len(mask_paths) != len(infos):
         raise ValueError(f"{len(infos)} images need {len(infos)} masks; got {len(mask_paths)}")
     try:
-        masks, mask_infos = load_images_with_info(mask_paths, mode, exif_orientation=exif_orientation)
+        # padded to the images' batch size: a chunk of a long run pads to its sequence's
+        masks, mask_infos = load_images_with_info(mask_paths, mode, exif_orientation=exif_orientation,
+                                                  pad_to=tuple(image_hw))
     except ImageLoadError as e:
         raise MaskError(f"mask: {e}") from None
     for path, m, info in zip(mask_paths, mask_infos, infos):

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvggt_jax.errors import InputError  # noqa: F401 (re-exported: rvggt_jax.InputError)
 from rvggt_jax.model.aggregator import aggregator_forward
 from rvggt_jax.ops.attention import kernel_scope
 from rvggt_jax.ops.ordering import zeros_from
@@ -34,10 +35,6 @@ from rvggt_jax.model.layers import Params
 from rvggt_jax.weights.layout import expected_param_paths, flatten_params
 
 
-class InputError(ValueError):
-    """Images or query points the model cannot take."""
-
-
 def _is_float(x: Any) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.floating)
 
@@ -49,6 +46,8 @@ def check_images(images: Any, config: VGGTConfig) -> jax.Array:
     this also works on tracers under jit; float values outside [0, 1] or NaN are an
     `InputRangeWarning` (`warn_if_out_of_range`: at once for concrete arrays, from inside
     the program under jit)."""
+    if isinstance(images, (list, tuple)):
+        images = _stack_frames(images)
     shape = tuple(np.shape(images))
     if len(shape) not in (4, 5):
         raise InputError(f"images must be [S,3,H,W] or [B,S,3,H,W]; got rank {len(shape)} shape {shape}")
@@ -74,6 +73,17 @@ def check_images(images: Any, config: VGGTConfig) -> jax.Array:
     return jnp.asarray(images, jnp.uint8 if dtype == jnp.uint8 else jnp.float32)
 
 
+def _stack_frames(frames: list | tuple) -> jax.Array:
+    """A list of S frames [3, H, W] (arrays, or tracers under jit) -> one array [S, 3, H, W];
+    `InputError` when they are no frames or differ in shape."""
+    shapes = [tuple(np.shape(f)) if hasattr(f, "shape") else None for f in frames]
+    if not frames or None in shapes or len(set(shapes)) != 1:
+        got = "an empty list" if not frames else f"a list of shapes {shapes[:4]}{' ...' if len(shapes) > 4 else ''}"
+        raise InputError(f"images must be one array [S,3,H,W] or [B,S,3,H,W] (or a list of arrays [3,H,W] "
+                         f"of one shape); got {got}")
+    return jnp.stack(frames)
+
+
 QUERY_HELP = "query_points are pixel (x, y) in frame 0 of the network input, shape [N, 2] or [B, N, 2]"
 
 
@@ -96,7 +106,27 @@ def as_query_points(query_points: Any) -> jax.Array:
         raise InputError(f"{QUERY_HELP}; got shape {tuple(qp.shape)}")
     if qp.dtype == jnp.bool_ or not (jnp.issubdtype(qp.dtype, jnp.floating) or jnp.issubdtype(qp.dtype, jnp.integer)):
         raise InputError(f"{QUERY_HELP}; got dtype {qp.dtype}")
+    if qp.shape[-2] == 0:
+        raise InputError(f"{QUERY_HELP}; got no points (shape {tuple(qp.shape)}): pass at least one, "
+                         f"or query_points=None for no tracks")
+    _check_finite_points(qp)
     return qp.astype(jnp.float32)
+
+
+def _check_finite_points(qp: jax.Array) -> None:
+    """`InputError` naming the first NaN/inf point of `qp` [N, 2] or [B, N, 2] (a NaN
+    point would poison the other points' tracks and every visibility). Traced values are
+    unknown until the program runs: not checked."""
+    try:
+        host = np.asarray(qp)
+    except jax.errors.TracerArrayConversionError:
+        return
+    bad = np.argwhere(~np.isfinite(host).all(-1))
+    if len(bad):
+        at = tuple(int(i) for i in bad[0])
+        index = at[0] if len(at) == 1 else at
+        raise InputError(f"{QUERY_HELP}; point {index} is {host[at].tolist()} ({len(bad)} non-finite in all): "
+                         f"every coordinate must be a finite number")
 
 
 def check_query_points(query_points: Any, batch: int) -> jax.Array:
@@ -188,6 +218,7 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
       world_points_conf [B,S,H,W];
       with query points: track [B,S,N,2], vis [B,S,N], conf [B,S,N];
       on request (config.with_outputs): saliency [B,S,h*w], patch_tokens [B*S,h*w,C],
+      descriptors [B,S,C] (`frame_descriptors`),
       aggregated_XX [B,S,P,2C], images [B,S,3,H,W] (upstream always returns this copy of
       the input; here only with `with_outputs(images=True)`).
     """
@@ -248,6 +279,16 @@ def _head_projections(params: Params, config: VGGTConfig, grid, with_track: bool
     return head_projections(readers, grid, 2 * config.embed_dim, raw, per_group)
 
 
+def frame_descriptors(patch_tokens: jax.Array, batch: int) -> jax.Array:
+    """Place descriptors [B, S, C] of the DINOv2 patch tokens [B*S, h*w, C]: each frame's
+    tokens mean-pooled (in float32) and scaled to unit length, so that a dot product is a
+    cosine similarity. DINOv2's pooled features are what visual place recognition builds
+    on (AnyLoc, SALAD); the long-sequence pipeline proposes loops from them."""
+    d = patch_tokens.astype(jnp.float32).mean(axis=1)
+    d = d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+    return d.reshape(batch, -1, d.shape[-1])
+
+
 def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None,
                     shards: FrameShards | None) -> dict[str, Any]:
     b, s, _, hh, ww = images.shape
@@ -288,6 +329,8 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
         out["images"] = unit * (1.0 + zeros_from((), jnp.float32, last[-1])) if last else unit
     if config.return_saliency:
         out["saliency"], out["patch_tokens"] = saliency, patch_tokens
+    if config.return_descriptors:
+        out["descriptors"] = frame_descriptors(patch_tokens, b)
     for i in config.return_layers:
         out[f"aggregated_{i:02d}"] = agg[i].array()
 
