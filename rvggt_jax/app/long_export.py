@@ -132,6 +132,7 @@ def export_chunked(out_dir: Path, run, store, trajectory, source: Path, weights)
 
 def _write_cameras_and_cloud(out_dir: Path, run, trajectory, infos: dict, names: list[str], points, colors, conf,
                              frames, source: Path, weights) -> dict:
+    from rvggt_jax.eval.datasets.kitti import write_kitti_poses
     from rvggt_jax.io.cameras import write_cameras_json
     from rvggt_jax.io.colmap import write_colmap_binary, write_colmap_text
     from rvggt_jax.io.export import CAMERAS_CONVENTION, IMAGES_DIR, link_images
@@ -169,6 +170,8 @@ def _write_cameras_and_cloud(out_dir: Path, run, trajectory, infos: dict, names:
     link_images(out_dir / IMAGES_DIR, run.paths, colmap_names)
     write_transforms_json(out_dir / "transforms.json", [f"{IMAGES_DIR}/{n}" for n in colmap_names], ext, k_orig,
                           sizes, ply_file_path="points.ply")
+    # evo reads this directly: `evo_ape kitti gt.txt poses_kitti.txt -as` (Sim(3)-aligned)
+    write_kitti_poses(out_dir / "poses_kitti.txt", ext)
     write_glb(out_dir / "scene.glb", points, colors, ext, k_orig, sizes)
     step = max(1, len(points) // 20000)
     write_trajectory_png(out_dir / "trajectory.png", ext, points[::step], colors[::step])

@@ -19,7 +19,7 @@ __all__ = ["Reconstruction", "apply_masks", "build_reconstruction", "parse_thres
            "sanitize_cameras", "select_points"]
 
 POINT_SOURCES = ("depth", "pointmap")
-_OUTPUT_KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
+_OUTPUT_KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf", "descriptors")
 
 
 @dataclass(frozen=True, eq=False)

@@ -75,8 +75,10 @@ def test_one_chunk_equals_the_unchunked_run(tmp_path, frames_dir, ckpt):
 
 @pytest.fixture(scope="module")
 def chunked_run(tmp_path_factory, frames_dir, ckpt):
+    """12 frames in 3 chunks, with loop closure on (the frames' descriptors are predicted
+    and cached; 12 frames hold no revisit)."""
     out = tmp_path_factory.mktemp("run") / "out"
-    summary = reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2)
+    summary = reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2, loop_closure=True)
     return out, summary
 
 
@@ -92,6 +94,9 @@ def test_three_chunks_write_every_frame(chunked_run, frames_dir):
     for folder, suffix in (("depth", ".png"), ("depth_preview", ".png"), ("thumbnails", ".jpg")):
         assert sorted(p.stem for p in (out / folder).glob(f"*{suffix}")) == stems, folder
     assert json.loads((out / "depth" / "depth_scale.json").read_text())["frames"] == stems
+    from rvggt_jax.eval.datasets.kitti import read_kitti_poses
+
+    np.testing.assert_allclose(read_kitti_poses(out / "poses_kitti.txt"), ext, atol=1e-9)
     transforms = json.loads((out / "transforms.json").read_text())
     assert len(transforms["frames"]) == FRAMES
     assert sorted(p.name for p in (out / "images").iterdir()) == names
@@ -105,6 +110,9 @@ def test_three_chunks_write_every_frame(chunked_run, frames_dir):
     doc = json.loads((out / "cameras.json").read_text())
     assert len(doc["chunk_sim3"]) == 3 and doc["chunk_sim3"][0]["scale"] == 1.0
     assert [f["chunk"] for f in doc["frames"]] == [0] * 5 + [1] * 3 + [2] * 4
+    assert doc["loop_closure"] is True and doc["loops"] == summary["loops"] == 0
+    desc = np.load(out / "chunks" / "chunk_00001" / "descriptors.npy")
+    assert desc.shape[0] == 6 and np.allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-5)
 
 
 def test_stopped_run_resumes_to_the_same_result(tmp_path, chunked_run, frames_dir, ckpt, monkeypatch):
@@ -123,7 +131,7 @@ def test_stopped_run_resumes_to_the_same_result(tmp_path, chunked_run, frames_di
 
     monkeypatch.setattr(ChunkedRun, "predict", stop_after_first)
     with pytest.raises(KeyboardInterrupt):
-        reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2)
+        reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2, loop_closure=True)
     assert (out / "chunks" / "chunk_00000" / "meta.json").is_file()
     assert not (out / "chunks" / "chunk_00001").exists() and not (out / "cameras.json").exists()
     listed = json.loads((out / ".rvggt-manifest.json").read_text())["files"]
@@ -131,7 +139,7 @@ def test_stopped_run_resumes_to_the_same_result(tmp_path, chunked_run, frames_di
 
     calls.clear()
     monkeypatch.setattr(ChunkedRun, "predict", lambda self, frames: calls.append(list(frames)) or predict(self, frames))
-    summary = reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2)
+    summary = reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2, loop_closure=True)
     assert calls == [list(range(4, 10)), list(range(6, 12))]  # chunk 0 came from the cache
     assert summary["frames"] == FRAMES
     np.testing.assert_allclose(cameras(out)[1], cameras(reference)[1], rtol=0, atol=1e-6)
@@ -146,7 +154,7 @@ def test_a_cache_of_other_settings_is_refused(chunked_run, frames_dir, ckpt):
 
     out, _ = chunked_run
     with pytest.raises(CLIError, match=r"other settings \(overlap 2 -> 3\).*--overwrite"):
-        reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=3)
+        reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=3, loop_closure=True)
 
 
 @pytest.mark.parametrize("args, needles", [
@@ -183,3 +191,29 @@ def test_a_folder_without_order_is_refused(tmp_path, capsys, names, needle):
                  "--chunk-frames", "2", "--overlap", "1"])
     err = capsys.readouterr().err
     assert code != 0 and needle in err and "order matters" in err and "Traceback" not in err, err
+
+
+def test_auto_chunk_is_the_largest_the_memory_plan_fits(monkeypatch):
+    """--chunk-frames auto: a line through two small plans, 90% of the device's memory."""
+    import types
+
+    import rvggt_jax.planning.memory as memory
+    from rvggt_jax.app.long_sequence import resolve_chunk_frames
+    from rvggt_jax.app.messages import CLIError
+    from rvggt_jax.app.options import ReconstructOptions
+
+    planned = []
+
+    def plan(config, frames, *a, **kw):  # 1 GB fixed + 50 MB a frame
+        planned.append(frames)
+        return types.SimpleNamespace(total_bytes=1e9 + 5e7 * frames)
+
+    monkeypatch.setattr(memory, "memory_report", plan)
+    monkeypatch.setattr(memory, "device_memory_bytes", lambda: (10e9, "a test device"))
+    chunk = resolve_chunk_frames("auto", None, (392, 518), ReconstructOptions(), frames=10_000)
+    assert chunk == int((0.9 * 10e9 - 1e9) / 5e7) and len(planned) == 2  # 160
+    assert resolve_chunk_frames("auto", None, (392, 518), ReconstructOptions(), frames=40) == 40
+    assert resolve_chunk_frames(12, None, (392, 518), ReconstructOptions(), frames=40) == 12
+    monkeypatch.setattr(memory, "device_memory_bytes", lambda: (1e9, "a test device"))
+    with pytest.raises(CLIError, match="not even 2 frames"):
+        resolve_chunk_frames("auto", None, (392, 518), ReconstructOptions(), frames=40)
