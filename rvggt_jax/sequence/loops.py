@@ -1,7 +1,7 @@
 """Loop candidates: pairs of far-apart frames whose place descriptors look alike.
 
 Cosine similarity between every two frames' descriptors [S, D], computed a block of rows
-at a time so that memory stays O(block * S) (S = 10,000 frames: 40 MB a block of 1,024
+at a time so that memory stays O(block * S) (S = 10,000 frames: ~10 MB of similarities a block of 256
 rows in float32, never the S x S matrix). Each frame keeps only its best partner among
 the frames it may pair with (best later frame, and best earlier frame), so at most 2 S
 pairs survive the blocks; those are then taken best first with non-maximum suppression
@@ -39,7 +39,7 @@ class LoopOptions:
     max_loops: int = 16
     nms_radius: int = 25
     neighbourhood: int = 2
-    block: int = 1024
+    block: int = 256
 
     def __post_init__(self) -> None:
         if not -1.0 <= self.min_similarity <= 1.0:

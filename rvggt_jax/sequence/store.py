@@ -8,8 +8,8 @@ run resumes from the last finished chunk.
 
 A chunk is a folder of `.npy` files (`chunk_00003/`), written under a temporary name and
 renamed when complete: a run killed mid-write leaves no half chunk that looks finished.
-Arrays are reopened with `mmap_mode="r"`, so aligning two chunks reads only the frames
-they share. When the points are a depth map unprojected with the chunk's cameras (the
+Arrays are read back by frame (`FrameFile`), so aligning two chunks reads only the frames
+they share and nothing stays resident after. When the points are a depth map unprojected with the chunk's cameras (the
 usual VGGT output), only the depth is stored and `DepthPoints` unprojects the frames
 asked for: 4 bytes a pixel instead of 12.
 """
@@ -26,7 +26,7 @@ import numpy as np
 
 from rvggt_jax.sequence.prediction import ChunkPrediction
 
-__all__ = ["ChunkStore", "DepthPoints", "unproject_depth"]
+__all__ = ["ChunkStore", "DepthPoints", "FrameFile", "unproject_depth"]
 
 
 def unproject_depth(depth: np.ndarray, extrinsics: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
@@ -125,10 +125,10 @@ class ChunkStore:
         os.replace(tmp, final)
         return final
 
-    def array(self, k: int, name: str) -> np.ndarray | None:
-        """Chunk k's array `name`, memory-mapped (None when it has none)."""
+    def array(self, k: int, name: str) -> "FrameFile | None":
+        """Chunk k's array `name`, read by frame from its file (None when it has none)."""
         p = self.path(k) / f"{name}.npy"
-        return np.load(p, mmap_mode="r") if p.is_file() else None
+        return FrameFile(p) if p.is_file() else None
 
     def meta(self, k: int) -> dict:
         return json.loads((self.path(k) / "meta.json").read_text())
@@ -150,8 +150,32 @@ class ChunkStore:
         conf = self.array(k, "confidence")
         if valid is not None:
             conf = _MaskedConfidence(conf, valid)
+        desc = self.path(k) / "descriptors.npy"
         return ChunkPrediction(frames=np.load(self.path(k) / "frames.npy"), extrinsics=ext, intrinsics=intr,
-                               points=points, confidence=conf, descriptors=self.array(k, "descriptors"))
+                               points=points, confidence=conf, descriptors=np.load(desc) if desc.is_file() else None)
+
+
+class FrameFile:
+    """A stored .npy array [F, ...] read by frame: every read maps the file, copies the
+    rows asked for and drops the mapping. A mapping kept open for the run would keep the
+    pages the reads (and the kernel's readahead) touched resident, and a run holding
+    every chunk would grow with S (+108 MiB at 10,000 frames, benchmarks/bench_long.py)."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        head = np.load(self.path, mmap_mode="r")
+        self.shape, self.dtype, self.ndim = tuple(head.shape), head.dtype, head.ndim
+        del head
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, index) -> np.ndarray:
+        return np.array(np.load(self.path, mmap_mode="r")[index])
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
 
 
 class _MaskedConfidence:
