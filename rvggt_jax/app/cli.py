@@ -344,7 +344,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(format_error(PROG, str(e)), file=sys.stderr, flush=True)
         return e.code
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
+        print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
+        from rvggt_jax.app.model_runner import ABANDONED_FORWARD
+
+        if ABANDONED_FORWARD.is_set():  # XLA cannot cancel it, and exiting would wait for it
+            sys.stdout.flush()
+            os._exit(130)
         return 130
     except MemoryError:
         print(f"{PROG}: error: out of memory (use fewer frames with --max-frames or a compression --preset)",

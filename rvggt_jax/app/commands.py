@@ -121,7 +121,7 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
     Everything cheap is checked first (the options, the input, the checkpoint file, the
     output folder), then the hub checkpoint is resolved (downloaded / converted), and only
     then are the video frames decoded and the model run."""
-    from rvggt_jax.app.outdir import Manifest
+    from rvggt_jax.app.outdir import OutputDirError, output_lock
 
     source, out_dir = Path(source), Path(out_dir)
     options.check()
@@ -142,6 +142,18 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
                            "frames to a folder first)")
         _mask_paths(chosen, options)  # a missing mask is said now, before the weights load
     created = not out_dir.exists()
+    try:
+        with output_lock(out_dir):
+            return _reconstruct_locked(chosen, video, source, weights, out_dir, options, created)
+    except OutputDirError as e:
+        raise CLIError(str(e)) from None
+
+
+def _reconstruct_locked(chosen, video: bool, source: Path, weights, out_dir: Path, options: ReconstructOptions,
+                        created: bool) -> dict:
+    """`reconstruct_folder` while it holds the output folder (`output_lock`)."""
+    from rvggt_jax.app.outdir import Manifest, remove_if_unused
+
     resume = _resume_chunked(out_dir, options)
     if not resume:
         _prepare_output(out_dir, options)
@@ -162,10 +174,7 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
         return _reconstruct(chosen, source, weights, local_weights, out_dir, options)
     finally:
         if not manifest.write() and created:  # also after a failure: the next --overwrite removes exactly these
-            try:
-                out_dir.rmdir()  # a run that failed before writing anything leaves no empty folder behind
-            except OSError:
-                pass
+            remove_if_unused(out_dir)  # a run that failed before writing anything leaves no folder behind
 
 
 def _resume_chunked(out_dir: Path, options: ReconstructOptions) -> bool:

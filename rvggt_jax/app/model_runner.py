@@ -5,6 +5,7 @@ each failure a one-line `CLIError` naming the checkpoint."""
 from __future__ import annotations
 
 import os
+import threading
 import warnings
 from pathlib import Path
 
@@ -85,11 +86,44 @@ def run_model(params, images, config, weights, compiled=None, mesh=None) -> dict
 
     enable_compilation_cache()
     try:
-        return forward(params, images, config, compiled, mesh)
+        return interruptible(forward, params, images, config, compiled, mesh)
     except InputError as e:
         raise CLIError(f"checkpoint {weights} does not fit the model: {one_line(e)}") from None
     except ValueError as e:  # a head missing
         raise CLIError(f"checkpoint {weights}: {one_line(e)}") from None
+
+
+# set when Ctrl-C left a forward running in its worker thread (`interruptible`)
+ABANDONED_FORWARD = threading.Event()
+
+
+def interruptible(fn, *args):
+    """fn(*args) in a worker thread, the main thread waiting in 0.1 s slices: Python runs
+    a Ctrl-C's handler only between bytecodes of the main thread, and a forward blocks
+    inside XLA for minutes, so a direct call would hold KeyboardInterrupt back until it
+    ends. The interrupted computation cannot be cancelled: `rvggt`'s main then leaves the
+    process at once (`ABANDONED_FORWARD`) rather than wait for it at exit."""
+    result: dict = {}
+
+    def work():
+        try:
+            import jax
+
+            result["value"] = jax.block_until_ready(fn(*args))
+        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+            result["error"] = e
+
+    worker = threading.Thread(target=work, name="rvggt-forward", daemon=True)
+    worker.start()
+    try:
+        while worker.is_alive():
+            worker.join(0.1)
+    except KeyboardInterrupt:
+        ABANDONED_FORWARD.set()
+        raise
+    if "error" in result:
+        raise result["error"]
+    return result["value"]
 
 
 def devices_mesh(devices: int | None):

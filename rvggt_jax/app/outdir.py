@@ -11,14 +11,17 @@ earlier run, and a user's own files in it never deleted.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
 from pathlib import Path
+from typing import Iterator
 
-__all__ = ["MANIFEST_NAME", "Manifest", "OutputDirError", "prepare_output"]
+__all__ = ["LOCK_NAME", "MANIFEST_NAME", "Manifest", "OutputDirError", "output_lock", "prepare_output"]
 
 MANIFEST_NAME = ".rvggt-manifest.json"
+LOCK_NAME = ".rvggt-lock"  # held (flock) by the run writing the folder; never listed or counted
 
 
 class OutputDirError(ValueError):
@@ -30,6 +33,8 @@ def _files(root: Path) -> dict[str, tuple[int, int]]:
     out = {}
     for dirpath, _, names in os.walk(root):
         for n in names:
+            if n == LOCK_NAME and Path(dirpath) == root:
+                continue
             p = Path(dirpath) / n
             try:
                 st = p.stat()
@@ -90,7 +95,7 @@ def prepare_output(out: str | os.PathLike, overwrite: bool = False) -> int:
         raise OutputDirError(f"cannot create output folder {out}: {blocker} is a file, not a folder")
     removed = 0
     if out.is_dir():
-        entries = sorted(os.listdir(out))
+        entries = sorted(e for e in os.listdir(out) if e != LOCK_NAME)
         if entries and not overwrite:
             ours = (out / MANIFEST_NAME).is_file()
             raise OutputDirError(
@@ -106,6 +111,52 @@ def prepare_output(out: str | os.PathLike, overwrite: bool = False) -> int:
     except OSError as e:
         raise OutputDirError(f"cannot write to output folder {out}: {e.strerror or e}") from None
     return removed
+
+
+@contextlib.contextmanager
+def output_lock(out: str | os.PathLike) -> Iterator[None]:
+    """Hold the folder `out` (created if needed) for one run: an exclusive `flock` on
+    `out/LOCK_NAME`, so that a second run into the same folder is refused at once
+    (`OutputDirError` naming the other run's process) instead of mixing its files with
+    this run's. The lock file stays (empty of meaning once unlocked): removing it could
+    let a third run lock a new file while a second holds the old one."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputDirError(f"output path exists and is not a folder: {out}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:
+        raise OutputDirError(f"cannot create output folder {out}: {e.strerror or e}") from None
+    try:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock (the emptiness check still applies)
+            fcntl = None
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+                raise OutputDirError(f"another rvggt run{f' (process {holder})' if holder else ''} is writing to "
+                                     f"{out}: wait for it to end, or choose another folder") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def remove_if_unused(out: str | os.PathLike) -> None:
+    """Remove `out` when it holds nothing but a lock file (a run that failed before
+    writing anything leaves no folder behind)."""
+    out = Path(out)
+    try:
+        if set(os.listdir(out)) <= {LOCK_NAME}:
+            (out / LOCK_NAME).unlink(missing_ok=True)
+            out.rmdir()
+    except OSError:
+        pass
 
 
 class Manifest:
