@@ -86,7 +86,7 @@ def export_chunked(out_dir: Path, run, store, trajectory, source: Path, weights)
     from rvggt_jax.io.depth import write_depth_frames, write_depth_scale
     from rvggt_jax.io.export import unique_stems
     from rvggt_jax.io.plots import write_thumbnails
-    from rvggt_jax.sequence.voxels import VoxelCloud
+    from rvggt_jax.sequence import VoxelCloud
 
     options = run.options
     names = [p.name for p in run.paths]

@@ -228,7 +228,7 @@ def predict_sequence(image_paths: Sequence[Path], params, config, *, chunk_frame
 
     from rvggt_jax.app.outdir import Manifest
     from rvggt_jax.io.images import network_shape
-    from rvggt_jax.sequence.store import ChunkStore
+    from rvggt_jax.sequence import ChunkStore
 
     paths = [Path(p) for p in image_paths]
     options = ReconstructOptions(mode=mode, chunk_frames=chunk_frames, overlap=overlap, loop_closure=loop_closure,
@@ -299,8 +299,7 @@ def reconstruct_chunked(chosen: list[Path], source: Path, weights, local_weights
     from rvggt_jax.app.model_runner import check_memory, model_for
     from rvggt_jax.app.long_export import export_chunked
     from rvggt_jax.io.images import ImageLoadError, network_shape
-    from rvggt_jax.sequence import plan_chunks
-    from rvggt_jax.sequence.store import ChunkStore
+    from rvggt_jax.sequence import ChunkStore, plan_chunks
 
     t0 = time.perf_counter()
     try:
