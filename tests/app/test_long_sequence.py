@@ -217,3 +217,16 @@ def test_auto_chunk_is_the_largest_the_memory_plan_fits(monkeypatch):
     monkeypatch.setattr(memory, "device_memory_bytes", lambda: (1e9, "a test device"))
     with pytest.raises(CLIError, match="not even 2 frames"):
         resolve_chunk_frames("auto", None, (392, 518), ReconstructOptions(), frames=40)
+
+
+def test_a_loop_verification_is_topped_up_to_the_compiled_chunk():
+    """verify(frames) with fewer frames than a chunk runs the compiled chunk size: the
+    frames asked for first (the first is the reference), then their nearest neighbours."""
+    from rvggt_jax.app.long_sequence import _top_up
+
+    asked = [10, 11, 50, 51]
+    run = _top_up(asked, 8, 60)
+    assert run[:4] == asked and len(run) == len(set(run)) == 8
+    assert sorted(run[4:]) == [9, 12, 49, 52]
+    assert _top_up([0, 1], 5, 3) == [0, 1, 2]  # never past the sequence
+    assert _top_up(list(range(6)), 4, 10) == list(range(6))  # a full list stays as it is
