@@ -129,6 +129,11 @@ def reconstruct_folder(source: str | Path, weights: str | Path, out_dir: str | P
         from rvggt_jax.app.ba_command import check_ba_available
 
         check_ba_available()
+    if options.loop_closure:
+        import importlib.util
+
+        if importlib.util.find_spec("gtsam") is None:  # said now, not after every chunk has run
+            raise CLIError('--loop-closure needs gtsam (the pose graph): pip install "rvggt-jax[sequence]"')
     video = _check_source(source, options)
     _check_weights(weights)
     chosen = None if video else _image_inputs(source, options)
@@ -236,6 +241,8 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
     if options.ba is not None and len(chosen) < 2:
         raise CLIError(f"--ba (bundle adjustment) needs at least 2 images; got {len(chosen)}")
     images, infos, chosen = _load_inputs(chosen, options)
+    if options.shared_camera:
+        _check_one_size(infos)
     s, _, h, w = images.shape
     masks = None
     if options.masks is not None:
@@ -262,7 +269,7 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         stage(3)
         recon = _decode(out, images, chosen, infos, options, masks)
         stage(4)
-        summary = _export(out_dir, recon, source, weights, config, options, chosen)
+        summary = _export(out_dir, recon, source, weights, config, options, chosen, model_outputs=out)
         if options.ba is not None:
             from rvggt_jax.app.ba_command import run_bundle_adjustment
 
@@ -367,15 +374,29 @@ def _decode(out: dict, images, chosen: list[Path], infos, options: ReconstructOp
     return recon
 
 
+def _check_one_size(infos) -> None:
+    """`CLIError` naming two of the sizes when the loaded images (`ImageInfo`s) differ in
+    size: one shared camera cannot have both (before the model runs)."""
+    first = infos[0]
+    other = next((i for i in infos if (i.width, i.height) != (first.width, first.height)), None)
+    if other is not None:
+        raise CLIError(f"--shared-camera needs images of one size; got {first.width}x{first.height} ({first.name}) "
+                       f"and {other.width}x{other.height} ({other.name})")
+
+
 def _export(out_dir: Path, recon, source: Path, weights, config, options: ReconstructOptions,
-            image_paths: Sequence[Path] | None = None) -> dict:
+            image_paths: Sequence[Path] | None = None, model_outputs=None) -> dict:
+    """Every output file (`rvggt_jax.io.export`); `model_outputs`: the forward's outputs,
+    for --save-raw."""
     from rvggt_jax.io.export import export_reconstruction
 
     meta = dict(source=str(source), weights=str(weights), preset=config.compression.name, mode=options.mode,
                 conf_threshold=str(options.conf_threshold), points_from=options.points_from,
                 exif_orientation=options.exif_orientation)
     return export_reconstruction(out_dir, recon, meta=meta, image_paths=image_paths,
-                                 max_colmap_points=None if options.all_colmap_points else 100_000)
+                                 max_colmap_points=None if options.all_colmap_points else 100_000,
+                                 camera_model=options.camera_type, shared_camera=options.shared_camera,
+                                 save_raw=options.save_raw, model_outputs=model_outputs)
 
 
 def _tell_summary(summary: dict, out_dir: Path, options: ReconstructOptions) -> None:

@@ -230,3 +230,17 @@ def test_a_loop_verification_is_topped_up_to_the_compiled_chunk():
     assert sorted(run[4:]) == [9, 12, 49, 52]
     assert _top_up([0, 1], 5, 3) == [0, 1, 2]  # never past the sequence
     assert _top_up(list(range(6)), 4, 10) == list(range(6))  # a full list stays as it is
+
+
+def test_loop_closure_without_gtsam_is_said_before_anything_runs(tmp_path, frames_dir, monkeypatch, capsys):
+    import importlib.util
+
+    from rvggt_jax.app.cli import main
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "gtsam" else find_spec(name, *a))
+    code = main(["reconstruct", str(frames_dir), "--weights", str(TINY), "--out", str(tmp_path / "o"),
+                 "--chunk-frames", "6", "--loop-closure"])
+    err = capsys.readouterr().err
+    assert code != 0 and 'pip install "rvggt-jax[sequence]"' in err and "Traceback" not in err, err
+    assert not (tmp_path / "o").exists()
