@@ -28,6 +28,10 @@ from rvggt_jax.app.messages import CLIError, one_line
 ANALYSIS_JSON = "diagnostics.json"
 PRESET_JSON = "preset.json"
 CALIBRATION_JSON = "calibration.json"
+# widest --size: about twice reconstruct's 518 (5,329 patches a frame; the images are
+# resized keeping their aspect and are at most as tall as wide). Unbounded, --size 1000006
+# aborted the whole process in XLA (a failed size check in C++, no Python error).
+MAX_SIZE = 1022
 RANDOM_NOTE = ("random weights (the bundled tiny model): the numbers are well formed but mean nothing about "
                "any trained VGGT")
 
@@ -42,8 +46,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, default=32, metavar="N",
                    help="at most N images per scene, evenly spaced (the paper: 32; default %(default)s)")
     p.add_argument("--size", type=int, default=None, metavar="W",
-                   help="network input width in pixels, a multiple of 14 (default: 518, as reconstruct; smaller "
-                        "is faster)")
+                   help=f"network input width in pixels, a multiple of 14 up to {MAX_SIZE} (default: 518, as "
+                        "reconstruct; smaller is faster)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
@@ -85,8 +89,9 @@ def _check_common(args) -> None:
         raise CLIError(f"--m must be at least 1; got {args.m}")
     if args.max_frames is not None and args.max_frames < 1:
         raise CLIError(f"--max-frames must be at least 1; got {args.max_frames}")
-    if args.size is not None and (args.size < 14 or args.size % 14):
-        raise CLIError(f"--size must be a positive multiple of 14 (the patch size); got {args.size}")
+    if args.size is not None and (args.size < 14 or args.size % 14 or args.size > MAX_SIZE):
+        raise CLIError(f"--size must be a positive multiple of 14 (the patch size) of at most {MAX_SIZE}; "
+                       f"got {args.size}")
 
 
 def _prepare(out: Path, args) -> None:

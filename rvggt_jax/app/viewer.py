@@ -206,12 +206,32 @@ def add_diagnostics_panel(server, out_dir: str | os.PathLike) -> list:
     return handles
 
 
+def check_bindable(host: str, port: int) -> None:
+    """`ViewerError` unless a server can listen on `host`:`port`, tried with a socket of our
+    own first: viser moves on to another port when one is in use, and fails in its own
+    thread (the command then hangs) on a port out of range or not ours to bind."""
+    import errno
+    import socket
+
+    if not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ViewerError(f"cannot serve on {host}:{port}: a port is 1-65535")
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server will (TIME_WAIT is no obstacle)
+            s.bind(addr)
+    except OSError as e:
+        hint = " (ports below 1024 need privileges)" if e.errno == errno.EACCES else ""
+        raise ViewerError(f"cannot serve on {host}:{port}: {e.strerror or e}{hint}; choose another --port") from None
+
+
 def start(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1", verbose: bool = False):
     """Start a viser server showing `out_dir` -> (server, Viewer); returns at once (the
     server runs in its own threads; `server.stop()` ends it)."""
     import viser
 
     rec = load_reconstruction(out_dir)
+    check_bindable(host, port)
     try:
         server = viser.ViserServer(host=host, port=port, verbose=verbose)
     except OSError as e:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 from rvggt_jax.compression.presets import PRESET_OVERRIDES
+from rvggt_jax.errors import InputError  # a ValueError: `except ValueError` still catches it
 
 
 class LayerKind(enum.StrEnum):
@@ -268,9 +269,10 @@ def make_compression(name: str, depth: int = 24, **overrides: Any) -> Compressio
     `make_compression("regime", 24, merge_ratio=(0, 0, 0), kv_sigma=(1, 1, 1))`.
 
     Layer lists of the presets are written for 24 layers; for another depth they are
-    rescaled proportionally (band starts and layer sets)."""
+    rescaled proportionally (band starts and layer sets). An unknown preset or field is an
+    `rvggt_jax.InputError` naming the known ones."""
     if name not in PRESET_OVERRIDES:
-        raise ValueError(f"unknown compression preset {name!r}; known: {', '.join(PRESETS)}")
+        raise InputError(f"unknown compression preset {name!r}; known: {', '.join(PRESETS)}")
     fields = dict(PRESET_OVERRIDES[name])
     if depth != 24:
         fields = _rescale(fields, depth)
@@ -280,7 +282,7 @@ def make_compression(name: str, depth: int = 24, **overrides: Any) -> Compressio
     known = {f.name for f in dataclasses.fields(CompressionConfig)}
     unknown = sorted(set(fields) - known)
     if unknown:
-        raise ValueError(f"unknown compression fields {unknown}; known: {sorted(known)}")
+        raise InputError(f"unknown compression fields {unknown}; known: {sorted(known)}")
     return CompressionConfig(**fields)
 
 

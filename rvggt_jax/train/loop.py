@@ -197,12 +197,17 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
                      train=opts.train, accumulate=opts.accumulate).validate()
 
     state = init_state(params, tc)
-    start = latest_step(out)
-    if start is not None:
+    saved = latest_step(out)
+    if saved is not None:
         state = restore_state(out, state)
-        log(f"resuming from step {start} in {out}")
     start = int(state.step)
     stop = min(opts.steps, opts.stop_at) if opts.stop_at is not None else opts.steps
+    if saved is not None:
+        if start < opts.steps:
+            _say_if_replanned(out, tc, start, log)
+        if start >= stop:
+            return _nothing_to_train(out, state, config, opts, start, log)
+        log(f"resuming from step {start} in {out}")
     fn, state = _train_step(config, tc, layout, state, log)
     step_fn = BucketedStep(fn, opts.batch, buckets, opts.size, log)
     log(f"{len(usable)} {fmt} scenes in {data_dir}; {lo}..{hi} frames per step in buckets {list(buckets)}")
@@ -257,6 +262,39 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     model_dir = save_orbax(jax.device_get(state.params), config, out / "model", overwrite=True)
     log(f"fine-tuned weights: {model_dir} (rvggt reconstruct --weights {model_dir})")
     return model_dir
+
+
+def _nothing_to_train(out: Path, state, config: VGGTConfig, opts: FinetuneOptions, start: int, log) -> Path:
+    """A rerun whose state is already at its last step (finished, or at --stop-at): says
+    so and trains nothing; a finished run's OUT/model is written if it is missing (a run
+    stopped between its last state and its weights). Returns what `finetune` returns."""
+    if start < opts.steps:
+        log(f"already at step {start} of {opts.steps} (--stop-at {opts.stop_at}): nothing to train; rerun with a "
+            f"later --stop-at, or without it, to continue")
+        return out / "state" / str(start)
+    model_dir = out / "model"
+    if not (model_dir / "config.json").is_file():
+        from rvggt_jax.weights.checkpoint import save_orbax
+
+        save_orbax(jax.device_get(state.params), config, model_dir, overwrite=True)
+    log(f"finished: {out} holds step {start} (--steps {opts.steps}): nothing to train; fine-tuned weights: "
+        f"{model_dir} (a larger --steps continues the run)")
+    return model_dir
+
+
+def _say_if_replanned(out: Path, tc: TrainConfig, start: int, log) -> None:
+    """A resumed run whose --steps (or warm-up) differs from the run it continues re-plans
+    the learning-rate schedule for the new total (the old one would have decayed to its
+    end value there); say so, since from `start` on the rates then differ from those of
+    either run alone."""
+    try:
+        old = TrainConfig.from_dict(json.loads((out / "train.json").read_text())["train"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    if (old.total_steps, old.warmup_steps) != (tc.total_steps, tc.warmup_steps):
+        log(f"note: the learning-rate schedule is re-planned for {tc.total_steps} steps (warm-up {tc.warmup_steps}); "
+            f"this run began with {old.total_steps} (warm-up {old.warmup_steps}), so from step {start} on the rates "
+            f"follow the new plan (docs/training.md, \"resuming\")")
 
 
 def _read_log(path: Path, upto: int | None) -> list[dict]:

@@ -23,12 +23,14 @@ import logging
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 from rvggt_jax.config import VGGTConfig
 # Defined with the converter (which raises them too); imported here for the loaders and
 # re-exported, so `rvggt_jax.weights.checkpoint.CheckpointError` keeps working.
 from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError, unreadable_message  # noqa: F401
+from rvggt_jax.weights.integrity import check_loaded, write_digests
+from rvggt_jax.weights.orbax_meta import contradiction, quiet_closed_loop_stragglers, restore_error, stored_shapes
 
 ORBAX_SUBDIR = "params"
 CONFIG_NAME = "config.json"
@@ -88,12 +90,17 @@ def _config_for(params: Mapping[str, Any], config: VGGTConfig) -> VGGTConfig:
     return config
 
 
-def _check_tree(flat_have: Mapping[tuple, tuple], flat_want: Mapping[tuple, tuple]) -> None:
+def _check_tree(flat_have: Mapping[tuple, tuple], flat_want: Mapping[tuple, tuple],
+                config: VGGTConfig | None = None) -> None:
+    """Raise one `CheckpointError` for every path missing from / unexpected in / of another
+    shape in `flat_have` ({path tuple: shape}) than `flat_want`; with `config`, its first
+    line says how config.json contradicts the tensors when it can (`contradiction`)."""
     missing = [(".".join(p), s) for p, s in flat_want.items() if p not in flat_have]
     unexpected = [".".join(p) for p in flat_have if p not in flat_want]
     mismatched = [(".".join(p), s, flat_want[p]) for p, s in flat_have.items() if p in flat_want and s != flat_want[p]]
     if missing or unexpected or mismatched:
-        raise CheckpointError(missing=missing, unexpected=unexpected, mismatched=mismatched)
+        summary = contradiction(config, {".".join(p): s for p, s in flat_have.items()}) if config else None
+        raise CheckpointError(missing=missing, unexpected=unexpected, mismatched=mismatched, summary=summary)
 
 
 def save_orbax(params: Mapping[str, Any], config: VGGTConfig, dst_dir: str | Path, *, overwrite: bool = False) -> Path:
@@ -128,6 +135,7 @@ def save_orbax(params: Mapping[str, Any], config: VGGTConfig, dst_dir: str | Pat
     finally:
         ckptr.close()
     config.to_json(dst / CONFIG_NAME)
+    write_digests(dst, flatten_params(params))  # verified by the first load (integrity.py)
     return dst
 
 
@@ -148,14 +156,20 @@ def _is_orbax_dir(d: Path) -> bool:
     return (d / "_CHECKPOINT_METADATA").is_file() or (d / "_METADATA").is_file()
 
 
-def _read_config(candidates: Iterable[Path]) -> VGGTConfig:
-    for c in candidates:
+def _read_config(ckpt_dir: Path) -> VGGTConfig:
+    """The config.json of the Orbax folder `ckpt_dir` (beside it, or inside it). Without
+    one the layout is unknown: the folder is damaged (save_orbax always writes it)."""
+    for c in (ckpt_dir.parent / CONFIG_NAME, ckpt_dir / CONFIG_NAME):
         if c.is_file():
             return VGGTConfig.from_json(c)
-    return VGGTConfig()
+    raise CheckpointFileError(
+        f"converted checkpoint {ckpt_dir.parent} has no {CONFIG_NAME} (expected {ckpt_dir.parent / CONFIG_NAME}): "
+        f"the folder is incomplete or damaged; convert the checkpoint again (`rvggt convert`)")
 
 
-def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_put: bool):
+def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_put: bool, verify: bool):
+    """The params tree of the Orbax folder `ckpt_dir` for `config`: stored shapes checked
+    first (one `CheckpointError`), then restored, then checked (finite, digests)."""
     import jax
     import numpy as np
     import orbax.checkpoint as ocp
@@ -163,6 +177,11 @@ def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_
     from rvggt_jax.weights.converter import expected_param_paths, flatten_params, unflatten_params
 
     want = expected_param_paths(config, skip_track=skip_track)
+    stored = stored_shapes(ckpt_dir)
+    if stored is not None:  # before restoring: Orbax's own mismatch errors run to 1,000+ lines
+        if skip_track:
+            stored = {p: s for p, s in stored.items() if p[0] != "track_head"}
+        _check_tree(stored, want, config)
     if device_put:  # straight to the default device, at most ~1 GB in flight on the host
         sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         item = {p: jax.ShapeDtypeStruct(s, np.float32, sharding=sharding) for p, s in want.items()}
@@ -178,15 +197,18 @@ def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_
         partial_restore=skip_track and config.enable_track,
     )
     ckptr = ocp.Checkpointer(ocp.PyTreeCheckpointHandler(restore_concurrent_gb=_RESTORE_CONCURRENT_GB))
+    quiet_closed_loop_stragglers()  # a failed restore's leftover reads would print thousands of tracebacks
     try:
         with _quiet_absl():
             params = ckptr.restore(ckpt_dir, args=restore)
-    except ValueError as e:  # tree structure (or, for jax leaves, a shape) differs from config.json's
-        raise CheckpointError(f"Orbax checkpoint {ckpt_dir} does not match its {CONFIG_NAME}:\n{e}") from e
+    except Exception as e:  # noqa: BLE001 - tensorstore raises bare Exceptions: a chunk unreadable
+        raise restore_error(ckpt_dir, e) from None
     finally:
         ckptr.close()
+    flat = flatten_params(params)
     # numpy restores come back in the stored shape whatever was asked: check them all
-    _check_tree({p: tuple(v.shape) for p, v in flatten_params(params).items()}, want)
+    _check_tree({p: tuple(v.shape) for p, v in flat.items()}, want, config)
+    check_loaded(flat, ckpt_dir.parent, ckpt_dir, verify=verify, complete=not (skip_track and config.enable_track))
     return params
 
 
@@ -219,6 +241,7 @@ def load_checkpoint(
     device_put: bool = True,
     progress: bool = False,
     param_dtype: Any = "float32",
+    verify: bool = False,
 ) -> tuple[dict, VGGTConfig]:
     """Load VGGT parameters from a local checkpoint -> `(params, config)`.
 
@@ -235,6 +258,12 @@ def load_checkpoint(
     arrays with `device_put=False`; `param_dtype="bfloat16"` stores the aggregator's
     weights in bfloat16 (half their memory; `cast_params`), for
     `config.with_dtype("bfloat16")`.
+
+    Every array is checked finite as it is loaded (`NonFiniteWeightError` naming it), and
+    an Orbax folder's arrays against the digests `save_orbax` recorded, once per copy or
+    on every load with `verify=True` (`DigestMismatchError`; `rvggt_jax.weights.integrity`).
+    A damaged Orbax folder (no config.json, an unreadable chunk) raises
+    `CheckpointFileError` naming the file or parameter.
     """
     p = Path(path)
     if not p.exists():
@@ -248,8 +277,9 @@ def load_checkpoint(
         st, config = p, config_for_safetensors(p)
     elif _is_orbax_dir(p / ORBAX_SUBDIR) or _is_orbax_dir(p):
         ckpt_dir = p / ORBAX_SUBDIR if _is_orbax_dir(p / ORBAX_SUBDIR) else p
-        config = _read_config([ckpt_dir.parent / CONFIG_NAME, ckpt_dir / CONFIG_NAME])
-        params = _load_orbax(ckpt_dir.absolute(), config, skip_track=skip_track, device_put=device_put)
+        config = _read_config(ckpt_dir)
+        params = _load_orbax(ckpt_dir.absolute(), config, skip_track=skip_track, device_put=device_put,
+                             verify=verify)
         return cast_params(params, param_dtype), _final_config(config, skip_track)
     elif (p / SAFETENSORS_NAME).is_file():
         st, config = p / SAFETENSORS_NAME, config_for_safetensors(p / SAFETENSORS_NAME)

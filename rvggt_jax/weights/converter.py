@@ -17,6 +17,7 @@ import numpy as np
 
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError, unreadable_message
+from rvggt_jax.weights.integrity import check_finite
 from rvggt_jax.weights.rules import Path as TreePath
 from rvggt_jax.weights.rules import apply_rule, converted_shapes, find_rule
 from rvggt_jax.weights.layout import expected_param_paths, flatten_params  # noqa: F401 (re-exported)
@@ -169,7 +170,11 @@ def check_source(source: TensorSource, config: VGGTConfig, *, skip_track: bool =
         if not _is_floating(dt):
             bad_dtype.append((k, str(dt)))
     if missing or unexpected or mismatched or bad_dtype:
-        raise CheckpointError(missing=missing, unexpected=unexpected, mismatched=mismatched, bad_dtype=bad_dtype)
+        from rvggt_jax.weights.orbax_meta import contradiction
+
+        summary = contradiction(config, {k: source.shape(k) for k in keys}) if mismatched or missing else None
+        raise CheckpointError(missing=missing, unexpected=unexpected, mismatched=mismatched, bad_dtype=bad_dtype,
+                              summary=summary)
     return keys
 
 
@@ -222,7 +227,8 @@ def convert_source(
     """Check then convert every tensor of `source`, one at a time.
 
     `leaf_fn` (e.g. `jax.device_put`) is applied to each converted leaf as soon as it
-    exists, so the upstream copy and our numpy copy can be dropped right away."""
+    exists, so the upstream copy and our numpy copy can be dropped right away. A tensor
+    holding NaN or inf raises `NonFiniteWeightError` naming it."""
     keys = check_source(source, config, skip_track=skip_track)
     from tqdm.auto import tqdm
 
@@ -233,6 +239,7 @@ def convert_source(
             x = source.get(key)
             for path, y in apply_rule(rule.kind, key, x):
                 y = _to_param(y)
+                check_finite(y, f"{'.'.join(path)} (upstream {key})", getattr(source, "path", None))
                 _insert(tree, path, leaf_fn(y) if leaf_fn is not None else y)
                 del y
             del x

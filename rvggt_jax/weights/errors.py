@@ -11,14 +11,16 @@ from typing import Sequence
 
 __all__ = ["CheckpointError", "CheckpointFileError", "unreadable_message"]
 
-_LIST_LIMIT = 50  # per category in error messages
+_LIST_LIMIT = 10  # per category in error messages (the counts line gives the totals)
 
 
 class CheckpointError(ValueError):
     """A checkpoint that does not match the layout expected for its config.
 
     Carries every problem at once: `missing` [(key, expected shape)], `unexpected` [key],
-    `mismatched` [(key, shape, expected shape)], `bad_dtype` [(key, dtype)]."""
+    `mismatched` [(key, shape, expected shape)], `bad_dtype` [(key, dtype)]; `summary`, the
+    plain reason when one is known (e.g. config.json's embed_dim against the tensors'), is
+    the message's first line."""
 
     def __init__(
         self,
@@ -28,11 +30,13 @@ class CheckpointError(ValueError):
         unexpected: Sequence[str] = (),
         mismatched: Sequence[tuple[str, tuple, tuple]] = (),
         bad_dtype: Sequence[tuple[str, str]] = (),
+        summary: str | None = None,
     ):
         self.missing = list(missing)
         self.unexpected = list(unexpected)
         self.mismatched = list(mismatched)
         self.bad_dtype = list(bad_dtype)
+        self.summary = summary
         super().__init__(message or self._describe())
 
     def _describe(self) -> str:
@@ -41,6 +45,8 @@ class CheckpointError(ValueError):
             f"{len(self.mismatched)} with the wrong shape, {len(self.bad_dtype)} not floating point"
         )
         lines = [f"checkpoint does not match the VGGT layout of its config: {counts}"]
+        if self.summary:
+            lines = [self.summary, lines[0]]
 
         def section(title: str, items: list, fmt) -> None:
             if not items:

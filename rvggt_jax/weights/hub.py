@@ -8,8 +8,9 @@ checkpoint under the rvggt-jax cache and reused from there.
 Converted copies: `$RVGGT_WEIGHTS_DIR/<owner>--<name>/<commit>/` (default
 `$XDG_CACHE_HOME/rvggt-jax/weights`, i.e. `~/.cache/rvggt-jax/weights`), one per hub
 commit, so a new upstream revision is converted again and an old one is never mixed in.
-Offline (`HF_HUB_OFFLINE=1` or no network) the hub cache is used; when even that lacks the
-files, the newest converted copy of the repo is used, and without one `HubError` says
+Offline (`HF_HUB_OFFLINE=1`, or the endpoint not answering one quick TCP probe,
+`hub_reachable`) the hub cache is used at once; when even that lacks the files, the
+newest converted copy of the repo is used, and without one `HubError` says
 exactly which file is missing where.
 
 Concurrent runs: a copy is written into a temporary sibling folder, marked complete
@@ -35,6 +36,7 @@ __all__ = ["HubError", "converted_root", "is_repo_id", "publish_dir", "resolve_c
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
 _READY = ".complete"  # written last: a folder without it is an interrupted conversion
+_PROBE_TIMEOUT_S = 3.0  # a reachable hub answers a TCP connect well within this
 # owner/name as the hub spells them (letters, digits, '-', '_', '.'), nothing else
 _REPO_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,95}/[A-Za-z0-9][A-Za-z0-9_.-]{0,95}$")
 
@@ -73,16 +75,47 @@ def _hub_cache() -> str:
     return str(constants.HF_HUB_CACHE)
 
 
+def _endpoint() -> str:
+    from huggingface_hub import constants
+
+    return str(constants.ENDPOINT)
+
+
 def _offline() -> bool:
     from huggingface_hub import constants
 
     return bool(constants.HF_HUB_OFFLINE)
 
 
-def _download(repo_id: str, filename: str, revision: str | None) -> str:
+def _download(repo_id: str, filename: str, revision: str | None, local_only: bool = False) -> str:
     from huggingface_hub import hf_hub_download
 
-    return hf_hub_download(repo_id, filename, revision=revision)
+    return hf_hub_download(repo_id, filename, revision=revision, local_files_only=local_only)
+
+
+def hub_reachable(timeout: float = _PROBE_TIMEOUT_S) -> bool:
+    """Whether a TCP connection to the hub endpoint (HF_ENDPOINT, default huggingface.co;
+    or to the proxy configured for it) opens within `timeout` seconds. One quick probe:
+    unreachable, huggingface_hub would spend ~25 s in its retries before giving up."""
+    import socket
+    import urllib.parse
+    import urllib.request
+
+    from huggingface_hub import constants
+
+    url = urllib.parse.urlsplit(constants.ENDPOINT)
+    host, port = url.hostname, url.port or (443 if url.scheme == "https" else 80)
+    proxy = urllib.request.getproxies().get(url.scheme)
+    if proxy and host and not urllib.request.proxy_bypass(host):
+        purl = urllib.parse.urlsplit(proxy if "://" in proxy else f"http://{proxy}")
+        host, port = purl.hostname, purl.port or 80
+    if not host:
+        return True  # an endpoint we cannot parse: let huggingface_hub try it
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
 
 
 def _explain(repo_id: str, filename: str, e: Exception) -> str:
@@ -99,7 +132,7 @@ def _explain(repo_id: str, filename: str, e: Exception) -> str:
     if name == "RevisionNotFoundError":
         return f"{repo_id} has no such revision"
     if _offline() or name in ("LocalEntryNotFoundError", "OfflineModeIsEnabled"):
-        how = "HF_HUB_OFFLINE is set" if _offline() else "the hub cannot be reached"
+        how = "HF_HUB_OFFLINE is set" if _offline() else f"the hub ({_endpoint()}) cannot be reached"
         return (f"{filename} of {repo_id} is not in {where} and {how}; no converted copy in "
                 f"{_repo_dir(repo_id)} either (and no local path {repo_id}): download it once online "
                 f"(`hf download {repo_id} {filename} {CONFIG_FILE}`) or pass a local checkpoint")
@@ -115,8 +148,9 @@ def resolve_checkpoint(spec: str | os.PathLike, *, revision: str | None = None, 
         return Path(spec)
     repo_id = os.fspath(spec)
     say = say or (lambda msg: None)
+    local_only = not _offline() and not hub_reachable()  # then only the caches, at once
     try:
-        st = Path(_download(repo_id, WEIGHTS_FILE, revision))
+        st = Path(_download(repo_id, WEIGHTS_FILE, revision, local_only))
     except Exception as e:  # noqa: BLE001 - every hub failure becomes one explanation
         fallback = _newest_converted(repo_id)
         if fallback is not None and type(e).__name__ not in ("GatedRepoError", "RepositoryNotFoundError"):
@@ -128,7 +162,7 @@ def resolve_checkpoint(spec: str | os.PathLike, *, revision: str | None = None, 
     if (dst / _READY).is_file():
         return dst
     try:
-        cfg = Path(_download(repo_id, CONFIG_FILE, commit))
+        cfg = Path(_download(repo_id, CONFIG_FILE, commit, local_only))
     except Exception:  # noqa: BLE001 - no config.json: the layout is inferred from the shapes
         cfg = None
     with _cache_lock(dst, say) as locked:

@@ -20,7 +20,7 @@ __all__ = ["load_pretrained"]
 
 
 def load_pretrained(path: str | Path, *, skip_track: bool = False, device_put: bool = True, progress: bool = False,
-                    param_dtype: Any = "float32") -> tuple[dict, VGGTConfig]:
+                    param_dtype: Any = "float32", verify: bool = False) -> tuple[dict, VGGTConfig]:
     """Load VGGT parameters -> `(params, config)`.
 
     `path` is a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
@@ -31,9 +31,10 @@ def load_pretrained(path: str | Path, *, skip_track: bool = False, device_put: b
     `rvggt_jax.weights.checkpoint.load_checkpoint` takes them. The options are
     `load_checkpoint`'s: `skip_track=True` drops the track head, `device_put=False` keeps
     numpy leaves, `param_dtype="bfloat16"` stores the aggregator's weights in bfloat16
-    (for `config.with_dtype("bfloat16")`).
+    (for `config.with_dtype("bfloat16")`), `verify=True` checks a converted copy's arrays
+    against their recorded digests on this load (otherwise once per copy).
     """
     if is_repo_id(path):
         path = resolve_checkpoint(path, progress=progress)
     return load_checkpoint(path, skip_track=skip_track, device_put=device_put, progress=progress,
-                           param_dtype=param_dtype)
+                           param_dtype=param_dtype, verify=verify)

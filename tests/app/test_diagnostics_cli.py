@@ -140,7 +140,7 @@ def test_calibrate_from_analyze_json_and_from_images(analyzed, tmp_path, capsys)
 def test_a_preset_file_written_from_regime_runs_identically(analyzed, tmp_path):
     """load(save(regime)) == regime, so the forward under it is regime's compiled program
     (a jit cache hit, no new compile) and its outputs are bitwise regime's."""
-    from rvggt_jax.app.commands import _model_for
+    from rvggt_jax.app.model_runner import model_for as _model_for
     from rvggt_jax.app.options import ReconstructOptions
 
     regime = make_compression("regime", 24)
@@ -176,6 +176,8 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
          "image folder not found"),
         (["analyze", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "a"),
           "--size", "100"], "--size must be a positive multiple of 14"),
+        (["calibrate", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "c"),
+          "--size", "1000006"], "of at most 1022; got 1000006"),  # XLA used to abort the process
         (["calibrate", str(other), "--out", str(tmp_path / "c")], "not a diagnostics.json"),
         (["calibrate", str(DEMO_IMAGES), "--out", str(tmp_path / "c")], "--weights is needed"),
         (["calibrate", str(tmp_path / "x.json"), "--out", str(tmp_path / "c")], "input not found"),

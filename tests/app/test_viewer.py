@@ -108,3 +108,23 @@ def test_viewer_in_headless_chromium(tmp_path):
     magenta = (r > 180) & (b > 180) & (g < np.minimum(r, b) - 50)
     assert magenta.sum() > 2000, f"the 3D canvas shows no points ({magenta.sum()} magenta pixels)"
     assert canvas.std() > 10  # not a blank page
+
+
+def test_a_port_that_cannot_be_had_is_one_error(tmp_path):
+    """viser used to take the next port when one was in use, and to hang on 70000."""
+    from rvggt_jax.app import cli
+    from rvggt_jax.app.messages import CLIError
+    from rvggt_jax.app.viewer import ViewerError, start
+
+    make_reconstruction(tmp_path / "rec")
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(ViewerError, match=f"cannot serve on 127.0.0.1:{port}: .*in use"):
+            server, _ = start(tmp_path / "rec", port=port)
+            server.stop()  # (before the fix: a server on another port)
+    with pytest.raises(CLIError, match="a port is 1-65535, got 70000"):
+        cli.build_parser().parse_args(["view", str(tmp_path / "rec"), "--port", "70000"])
+    with pytest.raises(ViewerError, match="1-65535"):
+        start(tmp_path / "rec", port=70000)

@@ -23,3 +23,14 @@ def test_rejected(q, needle):
     with pytest.raises(InputError, match="query_points are pixel") as e:
         as_query_points(q)
     assert needle in str(e.value)
+
+
+@pytest.mark.parametrize("q, needle", [([[np.nan, 3], [10, 10]], "point 0 is [nan, 3.0]"),
+                                       ([[[1, 2], [np.inf, 3]]], "point (0, 1) is [inf, 3.0]"),
+                                       (np.zeros((0, 2)), "got no points (shape (0, 2))"),
+                                       (np.zeros((1, 0, 2)), "got no points")])
+def test_non_finite_or_no_points_rejected(q, needle):
+    """A NaN point would make every other point's visibility NaN; no points divided by zero."""
+    with pytest.raises(InputError, match="query_points are pixel") as e:
+        as_query_points(q)
+    assert needle in str(e.value)

@@ -331,3 +331,25 @@ def test_finetune_resumed_equals_uninterrupted(finetuned):
     assert int(a.step) == int(b.step) == 4
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_rerunning_a_finished_or_stopped_run_trains_nothing(finetuned, tmp_path):
+    """The same command again used to end in Orbax's StepAlreadyExistsError."""
+    import shutil
+
+    root, _, config, params = finetuned
+    ck = shutil.copytree(root / "full", tmp_path / "run")  # at step 4 (--stop-at 4)
+    before = (ck / "log.jsonl").read_text()
+    log = []
+    run = lambda **kw: train.finetune(root / "data", ck, params, config,  # noqa: E731
+                                      dataclasses.replace(FT_OPTS, **kw), log=log.append, progress=False)
+    assert run() == ck / "state" / "4"
+    assert any(m.startswith("already at step 4 of 30") for m in log)
+    # a larger --steps says that the schedule is re-planned (here still stopped at 4)
+    assert run(steps=40) == ck / "state" / "4"
+    assert any("re-planned for 40 steps" in m and "began with 30" in m for m in log)
+    # finished at --steps 4: the weights written once, then only said
+    assert run(steps=4, stop_at=None) == ck / "model" and (ck / "model" / "config.json").is_file()
+    assert run(steps=4, stop_at=None) == ck / "model"
+    assert sum(m.startswith(f"finished: {ck} holds step 4") for m in log) == 2
+    assert (ck / "log.jsonl").read_text() == before and train.latest_step(ck) == 4

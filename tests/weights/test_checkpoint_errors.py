@@ -70,8 +70,10 @@ def test_convert_mismatch_details_indented(tmp_path, capsys):
     (ck / "config.json").write_text(json.dumps(cfg))
     code, _, err = run(capsys, "convert", ck, tmp_path / "dst", "--quiet")
     lines = err.splitlines()
-    assert code == 1 and lines[0].startswith("rvggt: error: checkpoint does not match")
-    assert len(lines) > 3 and all(ln.startswith("  ") for ln in lines[1:])
+    # the plain reason first, then the counts and (at most 10 per kind) the tensors
+    assert code == 1 and lines[0] == "rvggt: error: config.json says embed_dim 64; the tensors are 32 wide"
+    assert lines[1].startswith("  checkpoint does not match")
+    assert 3 < len(lines) < 60 and all(ln.startswith("  ") for ln in lines[1:])
 
 
 def test_pt_is_not_advertised_and_refused_clearly(tmp_path, capsys):

@@ -197,3 +197,31 @@ def test_publish_dir_race_one_wins_the_other_uses_it(tmp_path):
         t.join()
     assert got == [dst] * 4 and (dst / ".complete").is_file() and (dst / "data").read_text() in "0123"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]
+
+
+def test_unreachable_hub_fails_fast_with_the_offline_message(tmp_path):
+    """HF_ENDPOINT at a closed local port (never the network): one quick probe, then the
+    message, instead of ~25 s of huggingface_hub's retries."""
+    import os
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    from tests.helpers import REPO
+
+    with socket.socket() as s:  # a port nobody listens on once closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HF_")}
+    env.update(HF_ENDPOINT=f"http://127.0.0.1:{port}", HF_HOME=str(tmp_path / "hf"), PYTHONPATH=str(REPO),
+               RVGGT_WEIGHTS_DIR=str(tmp_path / "converted"), JAX_PLATFORMS="cpu")
+    code = ("import sys, time\nfrom rvggt_jax.weights.hub import HubError, resolve_checkpoint\nt = time.monotonic()\n"
+            "try: resolve_checkpoint('someone/some-model')\n"
+            "except HubError as e: print(f'{time.monotonic() - t:.2f}', e); sys.exit(3)\n")
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 3, r.stderr[-2000:]
+    seconds, message = r.stdout.split(" ", 1)
+    assert float(seconds) < 5, (seconds, time.monotonic() - t0)
+    assert f"the hub (http://127.0.0.1:{port}) cannot be reached" in message and "someone/some-model" in message
