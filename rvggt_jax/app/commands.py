@@ -357,6 +357,9 @@ def _load_masks(chosen: list[Path], infos, image_hw: tuple[int, int], options: R
     except MaskError as e:
         raise CLIError(f"--masks: {e}") from None
     kept = float(masks.mean()) if masks.size else 0.0
+    if kept == 0.0:  # else the run ends with "no point passed the confidence threshold", a wrong hint
+        raise CLIError(f"--masks: the masks in {options.masks} keep no pixel of any image (all black, or only over "
+                       f"padding); white marks what to keep")
     say(options.quiet, f"masks: keeping {100 * kept:.1f}% of the network input's pixels")
     return masks
 

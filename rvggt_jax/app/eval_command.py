@@ -147,6 +147,19 @@ def _sequence_options(args: argparse.Namespace) -> dict:
     return dict(chunk_frames=c, overlap=o, loop_closure=bool(args.loop_closure))
 
 
+def _check_extras(args: argparse.Namespace) -> None:
+    """The eval extra's packages, checked before any scene runs (a missing matplotlib used
+    to surface after every scene had run): scipy (nearest neighbours), evo (trajectory
+    errors), matplotlib (the plots, unless --no-plots)."""
+    import importlib.util
+
+    need = ["scipy", "evo"] + ([] if args.no_plots else ["matplotlib"])
+    missing = [m for m in need if importlib.util.find_spec(m) is None]
+    if missing:
+        plots = " (or --no-plots, for matplotlib)" if "matplotlib" in missing else ""
+        _fail(f"rvggt eval needs {', '.join(missing)}: pip install \"rvggt-jax[eval]\"{plots}")
+
+
 def _fail(msg: str):
     from rvggt_jax.app.messages import CLIError
 
@@ -178,6 +191,7 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
     if args.size < 14 or args.size % 14:
         _fail(f"--size must be a positive multiple of 14; got {args.size}")
     chunking = _sequence_options(args)
+    _check_extras(args)
     if args.dataset == "images" and not args.against:
         _fail("--dataset images has no ground truth: add --against dense")
     weights = args.weights

@@ -167,3 +167,22 @@ def test_masked_pixels_have_no_depth_and_no_point(masked_run):
     colmap = read_colmap_text(out / "sparse")["points"]
     xyz = np.stack([colmap[j]["xyz"] for j in sorted(colmap)])
     np.testing.assert_allclose(xyz, read_ply(out / "points.ply")[0], rtol=1e-6, atol=1e-6)
+
+
+def test_all_black_masks_are_named_as_the_cause(tmp_path, monkeypatch):
+    """Masks that keep nothing stop the run before the model, saying so (the run used to
+    end with "no point passed the confidence threshold ... lower --conf-threshold")."""
+    from PIL import Image
+
+    from rvggt_jax.app.messages import CLIError
+
+    monkeypatch.setenv("RVGGT_CACHE_DIR", "off")
+    monkeypatch.setattr(commands, "run_model", lambda *a, **k: pytest.fail("the model ran"))
+    paths, _ = find_images(DEMO_IMAGES)
+    (tmp_path / "masks").mkdir()
+    for p in paths:
+        w, h = Image.open(p).size
+        Image.new("L", (w, h), 0).save(tmp_path / "masks" / f"{p.stem}.png")
+    options = ReconstructOptions(masks=tmp_path / "masks", quiet=True)
+    with pytest.raises(CLIError, match="keep no pixel of any image"):
+        commands.reconstruct_folder(DEMO_IMAGES, commands.DEMO_WEIGHTS, tmp_path / "out", options)

@@ -101,3 +101,16 @@ def test_eval_errors(capsys, tmp_path):
     (d / "chess").mkdir(parents=True)
     (d / "chess" / "TestSplit.txt").write_text("sequence1\n")
     one_error(capsys, ["--dataset", "7scenes", "--root", d, *out], "seq-01")
+
+
+def test_missing_plotting_package_is_said_before_any_scene(capsys, tmp_path, monkeypatch):
+    """Without matplotlib, `rvggt eval` names the extra (and --no-plots) before it runs
+    anything (it used to run every scene, then fail on the import)."""
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "matplotlib" else find_spec(n, *a))
+    out = tmp_path / "o"
+    one_error(capsys, ["--dataset", "tnt", "--root", tmp_path / "syn", "--synthetic", "--out", out, "--quiet"],
+              "matplotlib", 'pip install "rvggt-jax[eval]"', "--no-plots")
+    assert not (tmp_path / "syn").exists() and not out.exists()
