@@ -6,11 +6,11 @@
 
 import importlib
 
-from rvggt_jax.config import VGGTConfig
-
 # Public names resolved on first use, so importing a submodule (rvggt_jax.model.layers) stays
-# cheap and does not pull in every head.
+# cheap and does not pull in every head, and `import rvggt_jax` alone imports no JAX (the
+# `rvggt` command sets up the process before JAX is imported: rvggt_jax.app.cli.main).
 _LAZY = {
+    "VGGTConfig": "rvggt_jax.config",
     "rvggt_forward": "rvggt_jax.model.forward",
     "as_query_points": "rvggt_jax.model.forward",
     "InputError": "rvggt_jax.errors",
@@ -34,7 +34,7 @@ _LAZY = {
 # Flax modules, `rvggt_jax.model.modules`, under the name they had before the layout).
 _SUBMODULES = {"nn": "rvggt_jax.model.modules", "train": "rvggt_jax.train"}
 
-__all__ = ["VGGTConfig", *_LAZY, *_SUBMODULES]
+__all__ = [*_LAZY, *_SUBMODULES]
 __version__ = "0.1.0"
 
 

@@ -4,6 +4,7 @@ tracker of `rvggt_jax.ba`) and what the command says about it. The refinement it
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +43,6 @@ def track_head_fn(params, config):
     the aggregator and the track head only (the camera and dense heads are switched off:
     their outputs are already known, and a smaller program compiles faster); it is
     compiled once, every query frame having as many queries."""
-    import dataclasses
-
     import jax
     import jax.numpy as jnp
 
@@ -66,18 +65,20 @@ def run_bundle_adjustment(out_dir: Path, recon, params, config, options) -> dict
     """Bundle-adjust `recon` with the model's track head (`params`, `config`: the track
     program's, `split_track_head`) as `options.ba` says, write its outputs in `out_dir`
     (`rvggt_jax.ba.refine.write_outputs`) and say the reprojection errors before and
-    after. Returns the report. Too few frames or tracks: `CLIError` (the feed-forward
+    after; the cameras are those of the COLMAP export (--camera-type, --shared-camera).
+    Returns the report. Too few frames or tracks: `CLIError` (the feed-forward
     outputs are already written, and the message says so)."""
     from rvggt_jax.app.model_runner import enable_compilation_cache
     from rvggt_jax.ba import BAError, PycolmapMissing
     from rvggt_jax.ba.refine import CAMERAS_NAME, POINTS_NAME, REPORT_NAME, SPARSE_DIR, refine, write_outputs
 
     enable_compilation_cache()
+    ba = dataclasses.replace(options.ba, camera_model=options.camera_type, shared_camera=options.shared_camera)
     try:
-        outcome = refine(recon, track_head_fn(params, config), options.ba)
+        outcome = refine(recon, track_head_fn(params, config), ba)
     except (BAError, PycolmapMissing) as e:
         raise CLIError(f"bundle adjustment: {e} (the feed-forward outputs are in {out_dir})") from None
-    report = write_outputs(out_dir, outcome, recon.names, recon.sizes, options.ba)
+    report = write_outputs(out_dir, outcome, recon.names, recon.sizes, ba)
     report["files"] = [f"{SPARSE_DIR}/", CAMERAS_NAME, POINTS_NAME, REPORT_NAME]
     if not outcome.usable:
         warn(f"bundle adjustment: pycolmap reports an unusable solution ({outcome.summary})")

@@ -24,7 +24,7 @@ in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
 
 `reconstruct` writes, in OUT_DIR: points.ply, scene.glb, cameras.json, sparse/*.txt
 (COLMAP text model), depth/<stem>.png (+ depth/depth_scale.json), depth_preview/,
-thumbnails/, trajectory.png (and frames/ for a video); see
+thumbnails/, trajectory.png (and frames/ for a video, predictions.npz with --save-raw); see
 `rvggt_jax.io.export`. With --ba (bundle adjustment, the `[ba]` extra: pycolmap) also
 sparse_ba/ (COLMAP model with tracks: text, and binary in sparse_ba/bin), cameras_ba.json,
 points_ba.ply and ba_report.json (reprojection errors before / after); see `rvggt_jax.ba`.
@@ -41,8 +41,9 @@ import os
 import sys
 from typing import Sequence
 
+# nothing here imports JAX: `main` sets up the process before anything does (the commands
+# are imported by the functions that run them)
 from rvggt_jax.app.messages import CLIError, format_error, one_line
-from rvggt_jax.app.commands import RANDOM_WEIGHTS_NOTICE, demo, reconstruct_folder
 from rvggt_jax.app.console import PROG
 from rvggt_jax.app.options import ReconstructOptions, known_presets
 
@@ -102,6 +103,7 @@ def _port(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from rvggt_jax import __version__
+    from rvggt_jax.app.commands import RANDOM_WEIGHTS_NOTICE
 
     parser = _Parser(prog=PROG, description="VGGT feed-forward 3D reconstruction in JAX.")
     parser.add_argument("--version", action="version", version=f"{PROG} (rvggt-jax) {__version__}")
@@ -186,6 +188,17 @@ def _add_reconstruct_parser(sub, presets: str) -> None:
     p.add_argument("--all-colmap-points", action="store_true",
                    help="write every point of points.ply to sparse/points3D.txt (default: a random subset of "
                         "at most 100000)")
+    from rvggt_jax.io.colmap import CAMERA_MODELS
+
+    p.add_argument("--camera-type", default=_DEFAULTS.camera_type, type=str.upper, choices=tuple(CAMERA_MODELS),
+                   help="camera model of the COLMAP model (sparse/, and sparse_ba/ with --ba): PINHOLE (fx, fy, cx, "
+                        "cy; default), SIMPLE_PINHOLE (f = (fx + fy) / 2, cx, cy) or SIMPLE_RADIAL (f, cx, cy, k = 0)")
+    p.add_argument("--shared-camera", action="store_true",
+                   help="one COLMAP camera for all images (the median intrinsics; --ba refines that one): images of "
+                        "one size, e.g. a phone video")
+    p.add_argument("--save-raw", action="store_true",
+                   help="also write predictions.npz: the model's outputs under upstream VGGT's names (extrinsic, "
+                        "intrinsic, depth, depth_conf, world_points, ..., image_names; rvggt_jax.io.raw)")
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="split the frames over N local devices, one forward pass (default: all of them when "
                         "there are several)")
@@ -290,21 +303,25 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
         **common, mode=args.mode, max_frames=args.max_frames, every=args.every, fps=args.fps,
         skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, masks=args.masks, devices=args.devices,
         conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
-        all_colmap_points=args.all_colmap_points, ba=_ba_options(args), chunk_frames=args.chunk_frames,
+        all_colmap_points=args.all_colmap_points, camera_type=args.camera_type, shared_camera=args.shared_camera,
+        save_raw=args.save_raw, ba=_ba_options(args), chunk_frames=args.chunk_frames,
         overlap=args.overlap, loop_closure=args.loop_closure)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rvggt` console script; returns the exit status."""
     from rvggt_jax.ops.host_heap import keep_freed_host_memory
-    from rvggt_jax.ops.xla_cpu import prefer_threaded_convolutions, use_cpu_without_accelerator
+    from rvggt_jax.ops import xla_cpu
 
-    # before anything starts JAX: no probing of absent accelerators, multi-threaded CPU
-    # convolutions; and each run reusing the host memory the last one freed
-    use_cpu_without_accelerator()
-    prefer_threaded_convolutions()
-    keep_freed_host_memory()
     argv = list(sys.argv[1:] if argv is None else argv)
+    # before anything imports JAX: no probing of absent accelerators, and on the CPU alone
+    # no CUDA plugin (it logs "Could not find cuda drivers" lines; `plan` compiles with
+    # it); multi-threaded CPU convolutions; each run reusing the host memory the last freed
+    xla_cpu.use_cpu_without_accelerator()
+    if argv[:1] != ["plan"]:
+        xla_cpu.leave_cuda_plugin_unloaded()
+    xla_cpu.prefer_threaded_convolutions()
+    keep_freed_host_memory()
     try:
         if argv and argv[0] == "convert":
             return _convert(argv[1:])
@@ -312,6 +329,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             build_parser().print_help()
             return 2
+        from rvggt_jax.app.commands import demo, reconstruct_folder
+
         if args.command == "reconstruct":
             reconstruct_folder(args.images_dir, args.weights, args.out, reconstruct_options(args))
         elif args.command == "view":

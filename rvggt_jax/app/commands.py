@@ -18,7 +18,7 @@ from typing import Sequence
 from rvggt_jax.app.console import say, warn
 from rvggt_jax.app.messages import CLIError, one_line
 from rvggt_jax.app.model_runner import check_memory as _check_memory, model_for as _model_for, resolve_weights, run_model
-from rvggt_jax.app.options import ReconstructOptions, select_frames
+from rvggt_jax.app.options import ReconstructOptions, check_one_size, select_frames
 
 EXAMPLES_DIR = Path(__file__).resolve().parents[1] / "examples_data"  # rvggt_jax/examples_data
 DEMO_IMAGES = EXAMPLES_DIR / "images"
@@ -242,7 +242,7 @@ def _reconstruct(chosen, source: Path, weights, local_weights, out_dir: Path, op
         raise CLIError(f"--ba (bundle adjustment) needs at least 2 images; got {len(chosen)}")
     images, infos, chosen = _load_inputs(chosen, options)
     if options.shared_camera:
-        _check_one_size(infos)
+        check_one_size(infos)
     s, _, h, w = images.shape
     masks = None
     if options.masks is not None:
@@ -375,16 +375,6 @@ def _decode(out: dict, images, chosen: list[Path], infos, options: ReconstructOp
     for msg in recon.repairs:
         warn(msg)
     return recon
-
-
-def _check_one_size(infos) -> None:
-    """`CLIError` naming two of the sizes when the loaded images (`ImageInfo`s) differ in
-    size: one shared camera cannot have both (before the model runs)."""
-    first = infos[0]
-    other = next((i for i in infos if (i.width, i.height) != (first.width, first.height)), None)
-    if other is not None:
-        raise CLIError(f"--shared-camera needs images of one size; got {first.width}x{first.height} ({first.name}) "
-                       f"and {other.width}x{other.height} ({other.name})")
 
 
 def _export(out_dir: Path, recon, source: Path, weights, config, options: ReconstructOptions,

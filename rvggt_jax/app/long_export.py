@@ -165,8 +165,9 @@ def _write_cameras_and_cloud(out_dir: Path, run, trajectory, infos: dict, names:
     else:
         cpts, crgb = points, colors
     colmap_names = [n.replace(" ", "_") for n in names]
-    write_colmap_text(out_dir / "sparse", colmap_names, ext, k_orig, sizes, cpts, crgb)
-    write_colmap_binary(out_dir / "sparse", colmap_names, ext, k_orig, sizes, cpts, crgb)
+    cams = dict(camera_model=options.camera_type, shared_camera=options.shared_camera)
+    write_colmap_text(out_dir / "sparse", colmap_names, ext, k_orig, sizes, cpts, crgb, **cams)
+    write_colmap_binary(out_dir / "sparse", colmap_names, ext, k_orig, sizes, cpts, crgb, **cams)
     link_images(out_dir / IMAGES_DIR, run.paths, colmap_names)
     write_transforms_json(out_dir / "transforms.json", [f"{IMAGES_DIR}/{n}" for n in colmap_names], ext, k_orig,
                           sizes, ply_file_path="points.ply")

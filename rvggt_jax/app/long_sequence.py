@@ -310,6 +310,14 @@ def reconstruct_chunked(chosen: list[Path], source: Path, weights, local_weights
     for p in bad:
         warn(f"--skip-bad: skipped unreadable image {p}")
     chosen = [p for p in chosen if str(p) not in set(bad)]
+    if options.shared_camera:  # from the headers, before any chunk runs
+        import types
+
+        from rvggt_jax.app.options import check_one_size
+        from rvggt_jax.io.images import upright_size
+
+        check_one_size([types.SimpleNamespace(name=p.name, width=w, height=h) for p in chosen
+                        for w, h in [upright_size(p, options.exif_orientation)]])
     if len(chosen) < 2:
         raise CLIError(f"--chunk-frames needs at least 2 frames; got {len(chosen)}")
     params, config = model_for(local_weights, weights, options)

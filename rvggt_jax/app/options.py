@@ -46,6 +46,17 @@ def select_frames(paths: Sequence[Path], max_frames: int | None) -> list[Path]:
     return [paths[i] for i in idx]
 
 
+def check_one_size(infos) -> None:
+    """`CLIError` naming two of the sizes when the images (anything with `name`, `width`,
+    `height`: `ImageInfo`s) differ in size: one shared camera cannot have both (said
+    before the model runs)."""
+    first = infos[0]
+    other = next((i for i in infos if (i.width, i.height) != (first.width, first.height)), None)
+    if other is not None:
+        raise CLIError(f"--shared-camera needs images of one size; got {first.width}x{first.height} ({first.name}) "
+                       f"and {other.width}x{other.height} ({other.name})")
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ReconstructOptions:
     """How `rvggt reconstruct` (and `rvggt demo`) run: the command line's options, with its
@@ -79,6 +90,14 @@ class ReconstructOptions:
       max_points: cap on the points written to points.ply (a random subset); None: no cap.
       all_colmap_points: write every point of points.ply to sparse/points3D.txt (default:
         a random subset of at most 100000).
+      camera_type: the COLMAP model's camera model (sparse/, and sparse_ba/ with `ba`):
+        "PINHOLE" (fx, fy, cx, cy), "SIMPLE_PINHOLE" (f = (fx + fy) / 2, cx, cy) or
+        "SIMPLE_RADIAL" (f, cx, cy, k = 0).
+      shared_camera: one COLMAP camera for all images (the median intrinsics; bundle
+        adjustment refines that one): images of one size only (a video, one camera's
+        photos). cameras.json keeps each frame's predicted camera.
+      save_raw: also write predictions.npz, the model's outputs under upstream's names
+        (`rvggt_jax.io.raw`).
       overwrite: reuse a non-empty output folder, deleting the files the previous rvggt run
         there wrote (its manifest) and nothing else.
       quiet: no progress bars or messages (errors and warnings only).
@@ -110,6 +129,9 @@ class ReconstructOptions:
     points_from: str = "depth"
     max_points: int | None = 2_000_000
     all_colmap_points: bool = False
+    camera_type: str = "PINHOLE"
+    shared_camera: bool = False
+    save_raw: bool = False
     overwrite: bool = False
     quiet: bool = False
     chunk_frames: int | str | None = None
@@ -140,6 +162,10 @@ class ReconstructOptions:
             raise CLIError(f"--max-points must be at least 1; got {self.max_points}")
         if self.points_from not in ("depth", "pointmap"):
             raise CLIError(f"unknown point source {self.points_from!r}; use depth or pointmap")
+        from rvggt_jax.io.colmap import CAMERA_MODELS
+
+        if self.camera_type not in CAMERA_MODELS:
+            raise CLIError(f"unknown --camera-type {self.camera_type!r}; use {', '.join(CAMERA_MODELS)}")
         if self.every is not None and self.fps is not None:
             raise CLIError("give --every or --fps, not both")
         if self.every is not None and self.every < 1:
@@ -155,6 +181,12 @@ class ReconstructOptions:
 
     def _check_chunking(self) -> None:
         c, o = self.chunk_frames, self.overlap
+        if c is not None:
+            # the chunks' raw predictions are the cache itself (OUT/chunks/chunk_*/*.npy): one
+            # predictions.npz of every frame would hold the whole sequence in memory
+            if self.save_raw:
+                raise CLIError("--save-raw does not run with --chunk-frames: each chunk's predictions are kept in "
+                               "OUT/chunks/chunk_*/ (depth.npy, confidence.npy, extrinsics.npy, ...); drop --save-raw")
         if c is None:
             given = [n for n, v in (("--overlap", o is not None), ("--loop-closure", self.loop_closure)) if v]
             if given:

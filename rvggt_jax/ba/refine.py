@@ -54,6 +54,10 @@ class BAOptions:
     refine_focal: also refine each frame's focal lengths (default: poses and points).
     loss: robust loss of the residuals (`rvggt_jax.ba.adjust.LOSSES`).
     max_iterations: the solver's iteration cap.
+    camera_model / shared_camera: the COLMAP cameras adjusted and written (`rvggt
+      reconstruct`'s --camera-type / --shared-camera, `rvggt_jax.io.colmap.colmap_cameras`):
+      PINHOLE (fx, fy), SIMPLE_PINHOLE or SIMPLE_RADIAL (one f); one camera per frame or
+      one for all.
     """
 
     query_frames: int = 4
@@ -67,6 +71,8 @@ class BAOptions:
     refine_focal: bool = False
     loss: str = "cauchy"
     max_iterations: int = 100
+    camera_model: str = "PINHOLE"
+    shared_camera: bool = False
 
     def check(self) -> None:
         """ValueError naming the command-line option of a value out of range."""
@@ -91,6 +97,10 @@ class BAOptions:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {self.loss!r}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations must be at least 1; got {self.max_iterations}")
+        from rvggt_jax.io.colmap import CAMERA_MODELS
+
+        if self.camera_model not in CAMERA_MODELS:
+            raise ValueError(f"--camera-type must be one of {', '.join(CAMERA_MODELS)}; got {self.camera_model!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,7 +150,8 @@ def _adjust(extrinsic, k_net, size, tri: Triangulated, colors, options: BAOption
 
     s = len(extrinsic)
     names = [f"frame_{i:03d}" for i in range(s)]  # pycolmap's own copy: names only label it
-    ba = dict(refine_focal=options.refine_focal, loss=options.loss, max_iterations=options.max_iterations)
+    ba = dict(refine_focal=options.refine_focal, loss=options.loss, max_iterations=options.max_iterations,
+              camera_model=options.camera_model, shared_camera=options.shared_camera)
     adjusted, _ = run_bundle_adjustment(names, extrinsic, k_net, [size] * s, tri.points, tri.tracks, tri.mask,
                                         colors, **ba)
     err = reprojection_errors(adjusted.extrinsic, adjusted.intrinsic, adjusted.points, tri.tracks)
@@ -249,11 +260,12 @@ def write_outputs(out_dir: str | os.PathLike, outcome: BAOutcome, names: Sequenc
     out = Path(out_dir)
     colmap_names = [n.replace(" ", "_") for n in names]
     sparse = out / SPARSE_DIR
+    cams = dict(camera_model=options.camera_model, shared_camera=options.shared_camera)
     write_colmap_text_with_tracks(sparse, colmap_names, outcome.extrinsic, outcome.intrinsic, sizes,
                                   outcome.points, outcome.colors, outcome.tracks, outcome.mask,
-                                  errors=outcome.errors_after)
+                                  errors=outcome.errors_after, **cams)
     rec = build_pycolmap_reconstruction(colmap_names, outcome.extrinsic, outcome.intrinsic, sizes, outcome.points,
-                                        outcome.tracks, outcome.mask, outcome.colors)
+                                        outcome.tracks, outcome.mask, outcome.colors, **cams)
     rec.update_point_3d_errors()
     (sparse / "bin").mkdir(parents=True, exist_ok=True)
     rec.write(str(sparse / "bin"))

@@ -7,7 +7,8 @@
   named by timestamp.
 - Writers: `ply` (points with confidence), `glb` (scene.glb), `colmap` (COLMAP text
   model), `cameras` (cameras.json), `depth` (16-bit depth PNGs), `plots` (trajectory,
-  thumbnails, depth colours); `export.export_reconstruction` writes all of them for a
+  thumbnails, depth colours), `raw` (predictions.npz, read back by `load_predictions`);
+  `export.export_reconstruction` writes all of them for a
   `rvggt_jax.app.pipeline.Reconstruction`.
 """
 
@@ -27,17 +28,20 @@ from rvggt_jax.io.images import (
 )
 from rvggt_jax.io.plots import write_trajectory_png
 from rvggt_jax.io.ply import read_ply_properties, write_ply
+from rvggt_jax.io.raw import RawPredictionsError, load_predictions
 from rvggt_jax.io.video import VideoError, video_frames
 
 __all__ = [
     "IMAGE_EXTENSIONS",
     "ImageInfo",
     "ImageLoadError",
+    "RawPredictionsError",
     "VideoError",
     "export_reconstruction",
     "find_images",
     "load_images",
     "load_images_with_info",
+    "load_predictions",
     "preprocessed_size",
     "read_ply_properties",
     "video_frames",

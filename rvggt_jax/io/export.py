@@ -8,7 +8,8 @@ each written by the module of its format:
     cameras.json              `io.cameras`: per-image camera in the ORIGINAL image's
                               pixels, plus the network-input camera under "network"
     sparse/{cameras,images,points3D}.txt and .bin   `io.colmap`: the COLMAP model, text
-                              and binary (original pixels); points3D holds a random
+                              and binary (original pixels; a camera per image or one
+                              shared, PINHOLE by default); points3D holds a random
                               subset of points.ply
     transforms.json           `io.transforms`: nerfstudio's format (cameras, the images
                               under images/, points.ply as splatfacto's initial points)
@@ -19,6 +20,8 @@ each written by the module of its format:
                               depth/depth_scale.json)
     depth_preview/<stem>.png  `io.depth`: coloured depth (near = bright)
     trajectory.png            `io.plots`: camera centres from above
+    predictions.npz           `io.raw`: the model's predictions under upstream's names
+                              (only with `save_raw`)
 """
 
 from __future__ import annotations
@@ -31,10 +34,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rvggt_jax.io.cameras import write_cameras_json
-from rvggt_jax.io.colmap import write_colmap_binary, write_colmap_text
+from rvggt_jax.io.colmap import colmap_cameras, write_colmap_binary, write_colmap_text
 from rvggt_jax.io.depth import write_depth_pngs
 from rvggt_jax.io.plots import write_thumbnails, write_trajectory_png
 from rvggt_jax.io.ply import write_ply
+from rvggt_jax.io.raw import RAW_NAME, write_predictions
 from rvggt_jax.io.transforms import write_transforms_json
 
 __all__ = ["IMAGES_DIR", "export_reconstruction", "link_images", "unique_stems"]
@@ -47,7 +51,9 @@ CAMERAS_CONVENTION = ("extrinsic: 3x4 world-to-camera, OpenCV axes (x right, y d
 
 def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | None = 100_000,
                           meta: Mapping[str, Any] | None = None, write_scene: bool = True,
-                          image_paths: Sequence[PathLike] | None = None) -> dict[str, Any]:
+                          image_paths: Sequence[PathLike] | None = None, camera_model: str = "PINHOLE",
+                          shared_camera: bool = False, save_raw: bool = False,
+                          model_outputs: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Write every file of `recon` (a `rvggt_jax.app.pipeline.Reconstruction`) to `out_dir`
     (layout in the module docstring). points3D holds a random subset of at most
     `max_colmap_points` points (None: all); `meta` goes into cameras.json; scene.glb only
@@ -55,7 +61,12 @@ def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | 
     instead (listed in the summary's `colmap_renamed`). `image_paths` [S], the image
     files of `recon.names`: linked into images/ (transforms.json refers to them there;
     without them it names the images by their COLMAP names, relative to `out_dir`).
+    `camera_model` / `shared_camera`: the COLMAP model's cameras (`io.colmap.colmap_cameras`;
+    a shared camera needs images of one size, checked before anything is written).
+    `save_raw`: also predictions.npz (`io.raw.write_predictions`), with `model_outputs`,
+    the run's model outputs (pose_enc, world_points, world_points_conf).
     Returns a summary dict (paths, point counts, threshold used)."""
+    colmap_cameras(recon.intrinsic, recon.sizes, camera_model, shared_camera)  # (raises before any file)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = list(recon.names)
@@ -73,8 +84,10 @@ def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | 
     else:
         cpts, crgb = cloud, cloud_rgb
     colmap_names = [n.replace(" ", "_") for n in names]
-    write_colmap_text(out / "sparse", colmap_names, recon.extrinsic, recon.intrinsic, recon.sizes, cpts, crgb)
-    write_colmap_binary(out / "sparse", colmap_names, recon.extrinsic, recon.intrinsic, recon.sizes, cpts, crgb)
+    cams = dict(camera_model=camera_model, shared_camera=shared_camera)
+    write_colmap_text(out / "sparse", colmap_names, recon.extrinsic, recon.intrinsic, recon.sizes, cpts, crgb, **cams)
+    write_colmap_binary(out / "sparse", colmap_names, recon.extrinsic, recon.intrinsic, recon.sizes, cpts, crgb,
+                        **cams)
     if image_paths is not None:
         if len(image_paths) != s:
             raise ValueError(f"{s} images need {s} image paths; got {len(image_paths)}")
@@ -95,10 +108,13 @@ def export_reconstruction(out_dir: PathLike, recon, *, max_colmap_points: int | 
     scale = write_depth_pngs(out / "depth", stems, recon.depth, recon.valid, preview_folder=out / "depth_preview")
     step = max(1, len(cloud) // 20000)  # the plot needs no more points
     write_trajectory_png(out / "trajectory.png", recon.extrinsic, cloud[::step], cloud_rgb[::step])
+    if save_raw:
+        write_predictions(out / RAW_NAME, recon, model_outputs)
     return dict(out_dir=str(out), frames=s, points=int(len(cloud)), colmap_points=int(len(cpts)),
                 max_colmap_points=max_colmap_points,
                 conf_threshold=recon.conf_threshold, depth_scale=scale, stems=stems,
-                colmap_renamed=[(a, b) for a, b in zip(names, colmap_names) if a != b])
+                colmap_renamed=[(a, b) for a, b in zip(names, colmap_names) if a != b],
+                raw=RAW_NAME if save_raw else None)
 
 
 IMAGES_DIR = "images"  # where COLMAP-format readers (gsplat, nerfstudio) look for the images

@@ -43,6 +43,7 @@ __all__ = [
     "load_images_with_info",
     "network_images",
     "network_shape",
+    "upright_size",
     "preprocessed_size",
 ]
 
@@ -290,6 +291,16 @@ def load_images(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_
     return load_images_with_info(paths, mode, exif_orientation=exif_orientation)[0]
 
 
+def upright_size(path: str | os.PathLike, exif_orientation: bool = True) -> tuple[int, int]:
+    """(width, height) of the image file as it is viewed, from its header alone."""
+    with Image.open(path) as img:
+        w, h = img.size
+        # orientations 5-8 turn the picture a quarter turn
+        if exif_orientation and img.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+            w, h = h, w
+    return w, h
+
+
 def network_shape(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_orientation: bool = True,
                   on_error: str = "raise") -> tuple[tuple[int, int], list[str]]:
     """`((H, W), unreadable)`: the network input size `load_images_with_info` gives all of
@@ -301,11 +312,7 @@ def network_shape(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exi
     bad = []
     for path in map(os.fspath, paths):
         try:
-            with Image.open(path) as img:
-                w, h = img.size
-                # orientations 5-8 turn the picture a quarter turn
-                if exif_orientation and img.getexif().get(0x0112, 1) in (5, 6, 7, 8):
-                    w, h = h, w
+            w, h = upright_size(path, exif_orientation)
             nw, nh = preprocessed_size(w, h, mode)
         except (OSError, SyntaxError, ValueError, UnidentifiedImageError, Image.DecompressionBombError) as e:
             if on_error == "skip":

@@ -1,5 +1,7 @@
-"""XLA:CPU settings: multi-threaded convolutions (the model needs them for speed), and
-the CPU backend on a host without accelerators (`use_cpu_without_accelerator`).
+"""XLA:CPU settings: multi-threaded convolutions (the model needs them for speed), the
+CPU backend on a host without accelerators (`use_cpu_without_accelerator`), and JAX's
+CUDA plugin left unloaded in a CPU-only process (`leave_cuda_plugin_unloaded`: on a host
+without a CUDA driver it logs native "Could not find cuda drivers" lines otherwise).
 
 jaxlib 0.10 hands every f32 NHWC convolution to YNNPACK, which runs it on one thread:
 the DPT heads' 3x3 convolutions then leave all other cores idle (measured: 1.0 cores
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import os
 import sys
+import types
 
 FLAG = "--xla_cpu_experimental_ynn_fusion_type=-individual_convolution"
 FLAG_NAME = FLAG.split("=")[0]
@@ -50,6 +53,8 @@ def _jaxlib_version() -> tuple[int, ...]:
 
 
 def _backends_started() -> bool:
+    if "jax._src.xla_bridge" not in sys.modules:  # JAX not imported: none runs (and asking would import it)
+        return False
     try:
         from jax._src import xla_bridge
     except ImportError:  # pragma: no cover
@@ -94,6 +99,41 @@ def use_cpu_without_accelerator(nodes: tuple[str, ...] = ACCELERATOR_NODES) -> b
     if any(os.path.exists(n) for n in nodes):
         return False
     return use_cpu_backend()
+
+
+# JAX's CUDA plugin, as the `[plan]` extra installs it: its native modules, which
+# `import jax` loads (jaxlib's gpu_solver / gpu_prng / gpu_linalg wrappers import them
+# whatever JAX_PLATFORMS says), and its PJRT plugin, which JAX imports and initialises
+# when the first backend starts. Without a CUDA driver each of their libraries logs
+# "cudart_stub.cc:31] Could not find cuda drivers" through absl, to fd 2 before any
+# logging is set up: no log level or Python handler reaches those lines, only not loading
+# the libraries does.
+CUDA_PLUGIN_PACKAGES = ("jax_cuda12_plugin", "jax_cuda13_plugin")
+CUDA_PJRT_PLUGINS = ("jax_plugins.xla_cuda12", "jax_plugins.xla_cuda13")
+
+
+def leave_cuda_plugin_unloaded() -> bool:
+    """Keep JAX's CUDA plugin out of a process that runs on the CPU alone: when JAX_PLATFORMS
+    names only "cpu" and JAX is not imported yet, its native packages cannot be imported
+    (jaxlib then takes them as not installed) and its PJRT plugin module is a stub whose
+    `initialize()` registers nothing. Returns whether it did. For commands that run on the
+    CPU: `rvggt plan` compiles for GPUs with that plugin and must not call it."""
+    platforms = {p.strip().lower() for p in os.environ.get("JAX_PLATFORMS", "").split(",") if p.strip()}
+    if platforms != {"cpu"} or "jax" in sys.modules or "jaxlib" in sys.modules:
+        return False  # (once imported, the plugin's libraries are loaded and logged already)
+    for name in CUDA_PLUGIN_PACKAGES:
+        sys.modules.setdefault(name, None)  # None: `import name` raises ModuleNotFoundError
+    for name in CUDA_PJRT_PLUGINS:
+        sys.modules.setdefault(name, _unused_plugin(name))
+    return True
+
+
+def _unused_plugin(name: str) -> types.ModuleType:
+    """A stand-in for the PJRT plugin module `name` that JAX's plugin discovery imports and
+    calls `initialize()` of: the real one would load the CUDA libraries (and log)."""
+    module = types.ModuleType(name, "JAX's CUDA plugin, left unloaded by rvggt_jax.ops.xla_cpu (CPU only).")
+    module.initialize = lambda: None
+    return module
 
 
 def use_cpu_backend() -> bool:

@@ -76,9 +76,10 @@ def test_one_chunk_equals_the_unchunked_run(tmp_path, frames_dir, ckpt):
 @pytest.fixture(scope="module")
 def chunked_run(tmp_path_factory, frames_dir, ckpt):
     """12 frames in 3 chunks, with loop closure on (the frames' descriptors are predicted
-    and cached; 12 frames hold no revisit)."""
+    and cached; 12 frames hold no revisit), one shared SIMPLE_PINHOLE COLMAP camera."""
     out = tmp_path_factory.mktemp("run") / "out"
-    summary = reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2, loop_closure=True)
+    summary = reconstruct(frames_dir, ckpt, out, chunk_frames=6, overlap=2, loop_closure=True,
+                          camera_type="SIMPLE_PINHOLE", shared_camera=True)
     return out, summary
 
 
@@ -102,6 +103,7 @@ def test_three_chunks_write_every_frame(chunked_run, frames_dir):
     assert sorted(p.name for p in (out / "images").iterdir()) == names
     model = pycolmap.Reconstruction(str(out / "sparse"))
     assert sorted(im.name for im in model.images.values()) == names
+    assert [c.model.name for c in model.cameras.values()] == ["SIMPLE_PINHOLE"]  # --shared-camera
     assert 0 < len(model.points3D) <= 20_000
     # the cache is listed by the manifest (--overwrite removes it), one folder per chunk
     files = json.loads((out / ".rvggt-manifest.json").read_text())["files"]

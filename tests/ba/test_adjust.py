@@ -117,3 +117,26 @@ def test_bundle_adjustment_refines_focal_when_asked(problem):
     np.testing.assert_array_equal(fixed.intrinsic, k0)
     f_true = sc.intrinsics[:, 0, 0]
     assert np.abs(free.intrinsic[:, 0, 0] - f_true).mean() < 0.5 * np.abs(k0[:, 0, 0] - f_true).mean()
+
+
+def test_bundle_adjustment_with_one_shared_simple_camera(problem):
+    """--shared-camera --camera-type SIMPLE_PINHOLE: one camera for all frames (the
+    median of the per-frame focal lengths it starts from), and --ba-refine-focal refines
+    its single f: it stays one camera, fx = fy for every frame, f nearer the truth."""
+    sc, _, obs, mask, (w, h) = problem
+    k0 = sc.intrinsics.copy()
+    scale = np.array([1.02, 1.03, 1.04, 1.03, 1.05, 1.03])[:len(k0)]  # the median is 3 % too long
+    k0[:, 0, 0] *= scale
+    k0[:, 1, 1] *= scale
+    tri = triangulate_tracks(sc.extrinsics, sc.intrinsics, obs, mask, max_error=30.0)
+    names = [f"f{i}.png" for i in range(len(k0))]
+    adjusted, rec = run_bundle_adjustment(names, sc.extrinsics, k0, [(w, h)] * len(k0), tri.points, tri.tracks,
+                                          tri.mask, refine_focal=True, camera_model="SIMPLE_PINHOLE",
+                                          shared_camera=True)
+    assert rec.num_cameras() == 1 and {rec.image(i + 1).camera_id for i in range(len(k0))} == {1}
+    cam = rec.camera(1)
+    assert cam.model.name == "SIMPLE_PINHOLE" and len(cam.params) == 3
+    np.testing.assert_array_equal(adjusted.intrinsic, np.broadcast_to(adjusted.intrinsic[0], adjusted.intrinsic.shape))
+    assert adjusted.intrinsic[0, 0, 0] == adjusted.intrinsic[0, 1, 1]
+    f_true, f_start = sc.intrinsics[0, 0, 0], np.median(k0[:, 0, 0])
+    assert abs(adjusted.intrinsic[0, 0, 0] - f_true) < 0.5 * abs(f_start - f_true)

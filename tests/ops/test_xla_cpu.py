@@ -109,3 +109,27 @@ def test_cpu_backend_on_a_host_without_accelerators(tmp_path, case):
         assert got[:2] == ["False", "None"]
     else:
         assert got == ["False", "cpu", "cpu"]
+
+
+PLUGIN_PROBE = """
+import os, sys
+from rvggt_jax.ops import xla_cpu
+for platforms in sys.argv[1:]:
+    os.environ["JAX_PLATFORMS"] = platforms
+    print(xla_cpu.leave_cuda_plugin_unloaded(), "jax_cuda12_plugin" in sys.modules)
+import jax
+print(xla_cpu.leave_cuda_plugin_unloaded())
+"""
+
+
+def test_cuda_plugin_left_unloaded_only_on_the_cpu_alone():
+    """`leave_cuda_plugin_unloaded` (the `rvggt` command but `plan` calls it): nothing while
+    JAX_PLATFORMS names another platform, the plugin blocked when it names only the CPU,
+    and nothing once JAX is imported (the plugin's libraries are loaded by then)."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+    env["PYTHONPATH"] = str(ROOT)
+    r = subprocess.run([sys.executable, "-c", PLUGIN_PROBE, "", "cuda", "cpu,cuda", " CPU "], capture_output=True,
+                       text=True, env=env, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split("\n")[:5] == ["False False", "False False", "False False", "True True", "False"]
+    assert r.stderr == ""  # JAX imported without the plugin's "Could not find cuda drivers" lines
