@@ -123,6 +123,9 @@ def output_lock(out: str | os.PathLike) -> Iterator[None]:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputDirError(f"output path exists and is not a folder: {out}")
+    blocker = _first_existing_file_ancestor(out.parent)
+    if blocker is not None:
+        raise OutputDirError(f"cannot create output folder {out}: {blocker} is a file, not a folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
         fd = os.open(out / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)

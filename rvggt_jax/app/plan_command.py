@@ -5,8 +5,12 @@ the target without the device (nothing runs, no weights needed).
     rvggt plan --frames 300 --height 392 --width 518 --target rtx4090 --dtype bfloat16
     rvggt plan --frames 1000 --target tpu-v6e --devices 4
 
-Exit status: 0 when it fits, 3 when it does not (what would is printed), 2 for bad
+Exit status: 0 when it fits, 3 when it does not (alternatives are printed), 2 for bad
 arguments, 1 when the planning itself fails (e.g. the compilers are not installed).
+Progress goes to stderr while XLA compiles (a TPU plan of VGGT-1B takes minutes); the
+plan, one verdict and the alternatives to stdout. An alternative is "fits" only when it
+was compiled ("planned") and fits; the others are estimates with their size (the
+docstring of `alternatives` says which are compiled).
 `rvggt_jax.app.cli` registers the sub-command (`add_plan_parser`) and calls
 `run_plan_command`.
 """
@@ -14,15 +18,20 @@ arguments, 1 when the planning itself fails (e.g. the compilers are not installe
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
+import sys
+import threading
+import time
 
 __all__ = ["DOES_NOT_FIT", "add_plan_parser", "run_plan_command"]
 
 DOES_NOT_FIT = 3  # exit status of a plan that does not fit
 MARGIN = 0.95  # estimates aim at this share of the target's memory (they are about linear)
 JAX_GPU_FRACTION = 0.75  # JAX's GPU client lets XLA use this share unless told otherwise
+PROGRESS_EVERY = 60.0  # seconds between "still compiling" lines: XLA says nothing for minutes
 
 
 def add_plan_parser(sub) -> None:
@@ -58,8 +67,9 @@ def add_plan_parser(sub) -> None:
                    help="attention kernel (default auto: the target's; see docs/accelerators.md)")
     p.add_argument("--config", default=None, metavar="JSON",
                    help="a model config.json (default: VGGT-1B's layout)")
-    p.add_argument("--verify", action="store_true",
-                   help="when it does not fit, compile the suggested --max-frames too (a second compile)")
+    p.add_argument("--check-suggestions", "--verify", dest="check_suggestions", action="store_true",
+                   help="when it does not fit, compile the estimated alternatives (--frames N, --devices N) "
+                        "too: one compile each, up to four (without it only the combined settings are compiled)")
 
 
 def use_host_compilers() -> None:
@@ -131,6 +141,10 @@ def param_bytes(config, param_dtype: str) -> int:
     return sum(a.size * a.dtype.itemsize for a in jax.tree.leaves(abstract_params(config, param_dtype=param_dtype)))
 
 
+def _share(n: int, have: int) -> str:
+    return f" ({n / have:.0%})" if have else ""
+
+
 def _describe(rep, target, label: str) -> list[str]:
     """The plan's lines: what was planned, for what, and its parts."""
     per = f" (per device, {rep.devices} devices)" if rep.devices > 1 else ""
@@ -141,6 +155,8 @@ def _describe(rep, target, label: str) -> list[str]:
     if target.note:
         lines.append(f"               {target.note}")
     lines.append(f"  attention    {rep.attention or 'n/a'}")
+    if rep.fallback:
+        lines.append(f"  fallback     {rep.fallback}")
     if rep.exhausted:
         lines.append("  arguments, outputs, temporaries: n/a (XLA refused the program before assigning its buffers)")
     else:
@@ -149,50 +165,145 @@ def _describe(rep, target, label: str) -> list[str]:
                   f"  temporaries  {fmt_bytes(rep.temp_bytes)}"]
         if rep.alias_bytes:
             lines.append(f"  aliased      -{fmt_bytes(rep.alias_bytes)}")
-    have = rep.memory_bytes
-    share = f" ({rep.total_bytes / have:.0%})" if have else ""
-    lines.append(f"  total        {fmt_bytes(rep.total_bytes)} of {fmt_bytes(have)}{share}: {rep.memory_what}")
     if rep.compiler_checked:
-        lines.append("               (an upper bound: XLA:TPU counts more temporaries than it places at once, and "
-                     "it compiled the program for this chip's HBM)")
+        # no share of the HBM here: this sum is not what the chip holds, and not the verdict
+        lines.append(f"  total        {fmt_bytes(rep.total_bytes)}: the sum above, an upper bound, not the verdict "
+                     "(XLA:TPU counts more temporaries than it places at once)")
+    else:
+        lines.append(f"  total        {fmt_bytes(rep.total_bytes)} of {fmt_bytes(rep.memory_bytes)}"
+                     f"{_share(rep.total_bytes, rep.memory_bytes)}: {rep.memory_what}")
     if rep.peak_bytes:
         lines.append(f"  peak         {fmt_bytes(rep.peak_bytes)} (XLA's heap simulation of the scheduled program)")
     lines.append(f"  (XLA's plan, compiled in {rep.compile_seconds:.1f} s; nothing ran)")
     return lines
 
 
-def suggestions(rep, target, params: int) -> list[tuple[str, str]]:
-    """(option, why) pairs that would make a plan that does not fit fit, cheapest first.
-    Frames and devices are estimates: memory ~ weights + frames x (the rest per frame)."""
+def judge(rep) -> tuple[bool, str, str]:
+    """(fits, figure, what decides) of a report held against a known memory. One figure:
+    XLA:TPU's refusal or heap-simulation peak (it compiles only what fits its HBM), else
+    XLA's planned total against the memory; a plan that fits never shows a share over 100%."""
+    have, mem = fmt_bytes(rep.memory_bytes), rep.memory_bytes
+    if rep.exhausted:
+        return (False, f"needs {fmt_bytes(rep.needed_bytes)} of {have}{_share(rep.needed_bytes, mem)}",
+                "XLA:TPU refused to compile it: its own HBM check decides")
+    if rep.compiler_checked:
+        peak = rep.peak_bytes
+        shown = f", heap-simulation peak {fmt_bytes(peak)}{_share(peak, mem)}" if peak and peak <= mem else ""
+        return True, f"compiled for the {have} of HBM{shown}", "XLA:TPU's own HBM check decides, not the total"
+    total, spare = rep.total_bytes, rep.headroom_bytes
+    figure = f"{fmt_bytes(total)} of {have}{_share(total, mem)}"
+    if rep.fits:
+        return True, f"{figure}, {fmt_bytes(spare)} to spare", "XLA's planned total decides"
+    return False, f"needs {figure}, short by {fmt_bytes(-spare)}", "XLA's planned total decides"
+
+
+def verdict(rep) -> str:
+    """The plan's one verdict line: FITS or DOES NOT FIT, one figure, what decides."""
+    fits, figure, decides = judge(rep)
+    return f"{'FITS' if fits else 'DOES NOT FIT'}: {figure} ({decides})."
+
+
+@dataclasses.dataclass
+class Suggestion:
+    """An alternative to a plan that does not fit. changes: `rvggt plan` arguments (parser
+    dests) -> values, {} for advice that is no option (`advice` then says it); label:
+    "planned, fits: ..." / "planned, does not fit: ..." (compiled) or "estimate: about ..."."""
+
+    changes: dict
+    label: str
+    why: str = ""
+    advice: str = ""
+
+    @property
+    def options(self) -> str:
+        """The `rvggt plan` options of the alternative ("--dtype bfloat16 --frames 300")."""
+        if not self.changes:
+            return self.advice
+        return " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.changes.items())
+
+    @property
+    def estimated(self) -> bool:
+        return self.label.startswith("estimate")
+
+
+def planned_label(rep) -> str:
+    fits, figure, _ = judge(rep)
+    return f"planned, {'fits' if fits else 'does not fit'}: {figure}"
+
+
+def _estimate(size: float, have: int) -> str:
+    return f"estimate: about {fmt_bytes(int(size))} of {fmt_bytes(have)}{_share(size, have)}"
+
+
+def setting_changes(args: argparse.Namespace) -> dict:
+    """Every setting of `args` that saves memory, as `rvggt plan` arguments: bfloat16
+    compute (its weights follow unless --param-dtype float32 keeps them), bfloat16
+    weights, RegimeVGGT's compressed global attention."""
+    changes = {}
+    if args.dtype == "float32":
+        changes["dtype"] = "bfloat16"  # upstream's mixed precision: about half the activations
+    if args.param_dtype == "float32":
+        changes["param_dtype"] = "bfloat16"
+    if args.preset == "dense":
+        changes["preset"] = "regime"
+    return changes
+
+
+def scaling(rep, target, params: int, base: dict) -> list[Suggestion]:
+    """Fewer frames and more devices for `rep` (a plan with the settings `base`), estimated:
+    memory ~ weights + frames x (the rest per frame), per device."""
     have = rep.memory_bytes
-    out = []
-    if rep.dtype == "float32":
-        out.append(("--dtype bfloat16", "upstream's mixed precision: about half the activations and weights"))
-    elif rep.param_dtype == "float32":
-        out.append(("--param-dtype bfloat16", f"the weights in bf16: {fmt_bytes(params // 2)} less"))
-    if rep.preset == "dense":
-        out.append(("--preset regime", "RegimeVGGT's compressed global attention"))
     budget = MARGIN * have - params  # for what grows with the frames (per device)
     if budget <= 0:
-        out.append(("a larger target", f"the weights alone take {fmt_bytes(params)}"))
-        return out
+        return [Suggestion({}, "advice", f"the weights alone take {fmt_bytes(params)}", advice="a larger target")]
+    out = []
     rest = rep.total_bytes - params  # activations, images, outputs: about linear in the frames
     fit = int(rep.frames * budget / rest)
     if 1 <= fit < rep.frames:
-        out.append((f"--max-frames {fit}", f"about {fmt_bytes(int(params + rest * fit / rep.frames))} at {fit} "
-                                           "frames (memory grows about linearly with the frames)"))
+        out.append(Suggestion({**base, "frames": fit}, _estimate(params + rest * fit / rep.frames, have),
+                              f"memory grows about linearly with the frames; `rvggt reconstruct` keeps {fit} "
+                              f"frames with --max-frames {fit}"))
     elif fit < 1:
-        out.append(("smaller images or a larger target",
-                    f"one frame needs about {fmt_bytes(int(params + rest / rep.frames))}"))
+        out.append(Suggestion({}, "advice", f"one frame needs about {fmt_bytes(int(params + rest / rep.frames))}",
+                              advice="smaller images or a larger target"))
     if target.platform != "cpu":
         n = max(rep.devices + 1, math.ceil(rep.devices * rest / budget))
         if target.platform == "tpu":
             n = 1 << (n - 1).bit_length()  # a TPU slice has a power of two chips
         elif n > 8:
             n = 8 * math.ceil(n / 8)  # whole hosts of 8 GPUs
-        each = params + rest * rep.devices / n
-        out.append((f"--devices {n}", f"the frames split over {n} devices: about {fmt_bytes(int(each))} each"))
+        out.append(Suggestion({**base, "devices": n}, _estimate(params + rest * rep.devices / n, have),
+                              f"the frames split over {n} devices (per device)"))
     return out
+
+
+def _with(args: argparse.Namespace, changes: dict) -> argparse.Namespace:
+    return argparse.Namespace(**{**vars(args), **changes})
+
+
+def alternatives(args, rep, target, config, plan=None) -> list[Suggestion]:
+    """What to change when `rep` does not fit. Every setting that saves memory combined
+    (`setting_changes`) is compiled: one more compile, "planned". Fewer frames and more
+    devices are estimated from the plan, and from the combined plan when that does not fit
+    either; `args.check_suggestions` compiles each of those too (up to four compiles).
+    plan: compiles (args, config, target, what) -> report (default `plan_once`)."""
+    plan = plan or plan_once
+    changes = setting_changes(args)
+    tips, combined = [], None
+    if changes:
+        combined_config = _config(_with(args, changes))
+        combined = plan(_with(args, changes), combined_config, target,
+                        f"the alternative {Suggestion(changes, '').options}")
+        tips.append(Suggestion(changes, planned_label(combined), "every setting that saves memory, combined"))
+    tips += scaling(rep, target, param_bytes(config, rep.param_dtype), {})
+    if combined is not None and not combined.fits:
+        tips += scaling(combined, target, param_bytes(combined_config, combined.param_dtype), changes)
+    if args.check_suggestions:
+        for tip in tips:
+            if tip.estimated and tip.changes:
+                alt = _with(args, tip.changes)
+                tip.label = planned_label(plan(alt, _config(alt), target, f"the alternative {tip.options}"))
+    return tips
 
 
 def memory_fraction_note(rep, target) -> str | None:
@@ -205,59 +316,98 @@ def memory_fraction_note(rep, target) -> str | None:
             f"XLA_PYTHON_CLIENT_MEM_FRACTION={min(need + 0.02, 0.99):.2f} (or more)")
 
 
-def _verify(args, config, rep, option: str) -> str:
-    """Compile the suggested --max-frames: one line saying whether it fits."""
-    from rvggt_jax.planning.memory import memory_report
+def say(line: str) -> None:
+    """A progress line on stderr (stdout holds the plan)."""
+    print(line, file=sys.stderr, flush=True)
 
-    frames = int(option.split()[-1])
-    check = memory_report(config, frames, args.height, args.width, batch=args.batch, param_dtype=rep.param_dtype,
-                          target=args.target, devices=args.devices, image_dtype=args.images)
-    verdict = "fits" if check.fits else "does not fit either: lower it further"
-    return f"  checked: {frames} frames need {fmt_bytes(check.total_bytes)}: {verdict}"
+
+def _elapsed(seconds: float) -> str:
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    return f"{int(seconds // 60)} min {int(seconds % 60)} s"
+
+
+@contextlib.contextmanager
+def heartbeat(what: str, every: float | None = None):
+    """A "still compiling" line every `every` seconds (PROGRESS_EVERY) while the body runs:
+    XLA's compile prints nothing, for minutes on a TPU."""
+    every = PROGRESS_EVERY if every is None else every
+    done, t0 = threading.Event(), time.perf_counter()
+
+    def beat():
+        while not done.wait(every):
+            say(f"  ... still compiling {what} ({_elapsed(time.perf_counter() - t0)})")
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
+def plan_once(args: argparse.Namespace, config, target, what: str):
+    """`memory_report` of `config` for `args`' sizes on `target`, saying on stderr what
+    compiles, how long it took, and every `PROGRESS_EVERY` s meanwhile. Bad values exit 2,
+    a missing compiler 1."""
+    from rvggt_jax.planning.memory import memory_report
+    from rvggt_jax.planning.targets import CompilerMissingError
+
+    slow = "; minutes for VGGT-1B" if target.platform == "tpu" else ""
+    say(f"plan: tracing and compiling {what} for {target.name} ({target.described_by}; XLA, deviceless, nothing "
+        f"runs{slow}) ...")
+    t0 = time.perf_counter()
+    try:
+        with heartbeat(what):
+            rep = memory_report(config, args.frames, args.height, args.width, batch=args.batch,
+                                param_dtype=args.param_dtype or config.dtype, target=target, devices=args.devices,
+                                image_dtype=args.images, progress=say)
+    except CompilerMissingError as e:
+        _fail(str(e), code=1)
+    except ValueError as e:  # devices the target cannot have, sizes the model refuses
+        _fail(str(e))
+    done = "refused by XLA:TPU (more than its HBM)" if rep.exhausted else "compiled"
+    say(f"  {done} in {_elapsed(time.perf_counter() - t0)}")
+    return rep
 
 
 def run_plan_command(args: argparse.Namespace) -> int:
-    """Execute a parsed `rvggt plan`: print the plan; 0 when it fits, `DOES_NOT_FIT` when
-    not. Bad arguments raise `CLIError` (exit 2), a missing compiler exits 1."""
+    """Execute a parsed `rvggt plan`: print the plan and its verdict; 0 when it fits,
+    `DOES_NOT_FIT` (with alternatives) when not. Bad arguments raise `CLIError` (exit 2),
+    a missing compiler exits 1."""
     use_host_compilers()
-    from rvggt_jax.planning.memory import memory_report
-    from rvggt_jax.planning.targets import CompilerMissingError, UnknownTargetError, get_target
+    from rvggt_jax.planning.targets import CompilerMissingError, UnknownTargetError, get_target, target_devices
 
     try:
         target = get_target(args.target)
     except UnknownTargetError as e:
         _fail(str(e))
     config = _config(args)
-    param_dtype = args.param_dtype or config.dtype
-    label = "VGGT-1B" if args.config is None else f"the model of {args.config}"
-    try:
-        rep = memory_report(config, args.frames, args.height, args.width, batch=args.batch, param_dtype=param_dtype,
-                            target=target, devices=args.devices, image_dtype=args.images)
+    try:  # before any progress line: an error is then the only line (the devices are cached)
+        target_devices(target, args.devices)
     except CompilerMissingError as e:
         _fail(str(e), code=1)
-    except ValueError as e:  # devices the target cannot have, sizes the model refuses
+    except ValueError as e:  # devices the target cannot have
         _fail(str(e))
+    label = "VGGT-1B" if args.config is None else f"the model of {args.config}"
+    rep = plan_once(args, config, target, "the forward")
     print("\n".join(_describe(rep, target, label)), flush=True)
     if rep.fits is None:
         print(f"memory of {target.name} unknown here: nothing to hold the plan against", flush=True)
         return 0
-    if rep.fits and rep.compiler_checked and rep.headroom_bytes < 0:
-        print(f"FITS: XLA:TPU placed the program in the {fmt_bytes(rep.memory_bytes)} of HBM it compiled for.",
-              flush=True)
-        return 0
+    print(verdict(rep), flush=True)
     if rep.fits:
-        print(f"FITS: {fmt_bytes(rep.headroom_bytes)} to spare.", flush=True)
         note = memory_fraction_note(rep, target)
         if note:
             print(note, flush=True)
         return 0
-    print(f"DOES NOT FIT: needs {fmt_bytes(rep.total_bytes)}, {target.name} has {fmt_bytes(rep.memory_bytes)} "
-          f"(short by {fmt_bytes(-rep.headroom_bytes)}). What would fit (estimates, each alone):", flush=True)
-    tips = suggestions(rep, target, param_bytes(config, param_dtype))
-    width = max(len(o) for o, _ in tips)
-    for option, why in tips:
-        print(f"  {option.ljust(width)}  {why}", flush=True)
-    frames_tip = next((o for o, _ in tips if o.startswith("--max-frames")), None)
-    if args.verify and frames_tip:
-        print(_verify(args, config, rep, frames_tip), flush=True)
+    tips = alternatives(args, rep, target, config)
+    estimates = ("" if args.check_suggestions else "; \"estimate\": not compiled, the weights plus a part linear "
+                 "in the frames (--check-suggestions compiles them)")
+    print(f"Alternatives (\"planned\": compiled here as this plan was{estimates}):", flush=True)
+    width = max(len(t.options) for t in tips)
+    for tip in tips:
+        said = f"{tip.label}; {tip.why}" if tip.changes else tip.why
+        print(f"  {tip.options.ljust(width)}  {said}", flush=True)
     return DOES_NOT_FIT

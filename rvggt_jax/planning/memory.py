@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +43,8 @@ class MemoryReport:
     `regime` on a v6e: arguments + outputs + temporaries 33.3 GiB, the chip's program
     and arguments 21.8 GiB; docs/benchmarks.md), so its total is an upper bound there.
     `peak_bytes`: XLA's heap-simulator peak of the scheduled program, where the
-    compiler reports one.
+    compiler reports one. `fallback`: the XLA options the plan compiled with instead of
+    the target's own after these failed without a device, and why (None: the target's).
     """
 
     frames: int
@@ -71,6 +72,7 @@ class MemoryReport:
     image_dtype: str = "float32"  # the images' dtype in the program (uint8: 1/4 of the bytes)
     peak_bytes: int | None = None
     compiler_checked: bool = False  # compiled by a compiler that refuses what exceeds the memory
+    fallback: str | None = None
 
     @property
     def exhausted(self) -> bool:
@@ -140,7 +142,8 @@ def attention_kernel(program_text: str) -> str:
 def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
                   dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
                   backend: str | None = None, mesh: Any = None, target: Any = None,
-                  devices: int = 1, image_dtype: Any = "float32") -> MemoryReport:
+                  devices: int = 1, image_dtype: Any = "float32",
+                  progress: Callable[[str], None] | None = None) -> MemoryReport:
     """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
     `height` x `width` (multiples of the patch size) under `config`, without running it.
 
@@ -154,7 +157,8 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     or a `Target`: compile for it, here, without the device (the `[plan]` extra), over
     `devices` of them (frames split as with `mesh`), and hold the plan against its memory
     (`fits`). Raises `UnknownTargetError` naming the choices, `CompilerMissingError`
-    saying what to install.
+    saying what to install. progress: called with a line when a target's compile is
+    retried (XLA:GPU's Triton gemm tiling failure: `targets.gemm_fallback`).
     """
     from rvggt_jax.model.forward import InputError
 
@@ -180,7 +184,7 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, image_dtype=image_dtype.name,
                   param_dtype=param_dtype, preset=config.compression.name)
     if target is not None:
-        return _target_report(config, params, images, queries, get_target(target), devices, fields)
+        return _target_report(config, params, images, queries, get_target(target), devices, fields, progress)
     t0 = time.perf_counter()
     compiled = _lower(params, images, config, queries, mesh, backend).compile()
     return _report(compiled, time.perf_counter() - t0, fields)
@@ -221,7 +225,8 @@ def _peak_bytes(compiled) -> int | None:
     return peak or None
 
 
-def _target_report(config, params, images, queries, target, devices: int, fields: dict) -> MemoryReport:
+def _target_report(config, params, images, queries, target, devices: int, fields: dict,
+                   progress=None) -> MemoryReport:
     """`memory_report` for `target` (a `Target`) over `devices` of its devices."""
     import numpy as np
 
@@ -237,7 +242,7 @@ def _target_report(config, params, images, queries, target, devices: int, fields
     more = dict(target=target.name, memory_bytes=have, memory_what=what, device_kind=devs[0].device_kind,
                 devices=devices, attention=attention_kernel(lowered.as_text()))
     try:
-        compiled = lowered.compile(compiler_options=target.options() or None)
+        compiled, more["fallback"] = _compile_for(lowered, target, progress)
     except Exception as e:  # noqa: BLE001 - XLA's runtime error types move between versions
         exhausted = exhausted_hbm(str(e))
         if exhausted is None:
@@ -248,6 +253,27 @@ def _target_report(config, params, images, queries, target, devices: int, fields
                             **{**more, "memory_bytes": have or available})
     # (XLA:TPU compiles a program for a chip only when it fits the chip's HBM)
     return _report(compiled, time.perf_counter() - t0, fields, compiler_checked=target.platform == "tpu", **more)
+
+
+def _compile_for(lowered, target, progress=None) -> tuple[Any, str | None]:
+    """(compiled, fallback): `lowered` compiled with `target`'s options, or, when XLA:GPU
+    cannot tile a Triton gemm without the device, compiled again without Triton gemms (the
+    fallback says so; a run on the card autotunes its gemms instead)."""
+    try:
+        return lowered.compile(compiler_options=target.options() or None), None
+    except Exception as e:  # noqa: BLE001 - XLA's runtime error types move between versions
+        from rvggt_jax.planning.targets import gemm_fallback
+
+        options = gemm_fallback(target, str(e))
+        if options is None:
+            raise
+    if progress is not None:
+        progress("  XLA:GPU could not tile a Triton gemm without the device; compiling again with "
+                 "xla_gpu_enable_triton_gemm=false (cuBLAS gemms) ...")
+    fallback = ("xla_gpu_enable_triton_gemm=false: XLA:GPU could not tile a Triton gemm without the device (\""
+                "Couldn't find output tile sizes\"); planned with cuBLAS gemms, whose workspaces count as "
+                "temporaries (a run on the card autotunes its gemms)")
+    return lowered.compile(compiler_options=options), fallback
 
 
 def _sharded_lowering(params, images, config, queries, mesh):

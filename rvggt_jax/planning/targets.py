@@ -22,7 +22,7 @@ from importlib import resources
 from typing import Any
 
 __all__ = ["CompilerMissingError", "TARGETS", "Target", "UnknownTargetError", "description_text", "exhausted_hbm",
-           "get_target", "host_memory_bytes", "target_device", "target_devices"]
+           "gemm_fallback", "get_target", "host_memory_bytes", "target_device", "target_devices"]
 
 GiB = 2 ** 30
 PLATFORMS = ("cuda", "tpu", "cpu")
@@ -105,6 +105,23 @@ class Target:
 # head for sm_80 / sm_86 without a device ("Couldn't find output tile sizes that satisfy
 # hlo"): Ampere plans take cuBLAS gemms instead (their workspaces count as temporaries).
 NO_TRITON_GEMM = (("xla_gpu_enable_triton_gemm", False),)
+# The same failure on other GPUs, for other programs (a small config's DPT head on an H100):
+# the compile is retried with NO_TRITON_GEMM (`gemm_fallback`), as the Ampere plans take it.
+TRITON_TILING_FAILURE = "Couldn't find output tile sizes"
+
+
+def gemm_fallback(target: Target, message: str) -> dict[str, Any] | None:
+    """The compiler options to compile again with after XLA:GPU failed with `message`:
+    the target's options and NO_TRITON_GEMM when the failure is the Triton gemm tiling one
+    (a deviceless compile does not autotune its gemms; a run on the card does, cuBLAS among
+    the candidates), else None (nothing to retry: the target already takes them, or
+    another error)."""
+    options = target.options()
+    if target.platform != "cuda" or TRITON_TILING_FAILURE not in message:
+        return None
+    if all(options.get(k) == v for k, v in NO_TRITON_GEMM):
+        return None
+    return {**options, **dict(NO_TRITON_GEMM)}
 
 
 def _gpu(name, title, memory, description, aliases, note="", compiler_options=()):

@@ -190,3 +190,11 @@ def test_a_compiler_that_cannot_describe_the_target_says_what_to_install(monkeyp
     fresh = dataclasses.replace(tg.TARGETS["h200"], title="an H200 not described yet")  # not in the cache
     with pytest.raises(tg.CompilerMissingError, match=r"could not describe h200 .*Unknown backend.*rvggt-jax\[plan\]"):
         tg.target_device(fresh)
+
+
+def test_the_triton_gemm_fallback_is_for_a_gpu_and_that_failure_alone():
+    failure = "INTERNAL: Couldn't find output tile sizes that satisfy hlo: %dot.138 = f32[72,64]{1,0} dot(...)"
+    assert tg.gemm_fallback(tg.TARGETS["h100"], failure) == {"xla_gpu_enable_triton_gemm": False}
+    assert tg.gemm_fallback(tg.TARGETS["a100-80gb"], failure) is None  # it compiled without them already
+    assert tg.gemm_fallback(tg.TARGETS["tpu-v6e"], failure) is None
+    assert tg.gemm_fallback(tg.TARGETS["h200"], "INTERNAL: Mosaic failed to compile") is None
