@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["Box", "LoopWalk", "Rect", "SyntheticScene", "look_at", "loop_walkthrough", "make_scene",
+__all__ = ["Box", "LoopWalk", "Rect", "SyntheticScene", "camera_centers", "look_at", "loop_walkthrough", "make_scene",
            "orbit_cameras", "ray_cast", "render", "write_scene"]
 
 
@@ -192,6 +192,12 @@ def render(extrinsic: np.ndarray, intrinsic: np.ndarray, height: int, width: int
 # ---------------------------------------------------------------------------------------
 
 
+def camera_centers(extrinsics: np.ndarray) -> np.ndarray:
+    """Camera centres [S, 3] = -R^T t of world-to-camera extrinsics [S, 3, 4]."""
+    e = np.asarray(extrinsics, dtype=np.float64)
+    return -np.einsum("sji,sj->si", e[:, :, :3], e[:, :, 3])
+
+
 def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.0)) -> np.ndarray:
     """World-to-camera [3, 4] (OpenCV) of a camera at `center` [3] looking at `target`
     [3]; `up` is the world direction that appears upwards in the image (y down)."""
@@ -310,8 +316,7 @@ class LoopWalk:
     @property
     def centers(self) -> np.ndarray:
         """[S, 3] true camera centres."""
-        r, t = self.extrinsics[:, :, :3], self.extrinsics[:, :, 3]
-        return -np.einsum("sji,sj->si", r, t)
+        return camera_centers(self.extrinsics)
 
     def visible(self, frame: int) -> tuple:
         """The primitives frame `frame` may see: those from 2 m behind to `view` ahead

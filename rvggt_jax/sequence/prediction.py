@@ -126,5 +126,6 @@ class Trajectory:
     @property
     def centers(self) -> np.ndarray:
         """[S, 3] camera centres -R^T t in the first chunk's frame."""
-        r, t = self.extrinsics[:, :, :3], self.extrinsics[:, :, 3]
-        return -np.einsum("sji,sj->si", r, t)
+        from rvggt_jax.synthetic import camera_centers
+
+        return camera_centers(self.extrinsics)

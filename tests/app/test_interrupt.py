@@ -31,9 +31,12 @@ def test_ctrl_c_stops_a_running_forward_promptly(monkeypatch):
 
     x = jnp.full((256, 256), 0.01, jnp.float32)
     jax.block_until_ready(slow(x, 200))  # compiled
-    t0 = time.perf_counter()
-    jax.block_until_ready(slow(x, 200))
-    steps = int(SLOW_S * 200 / max(time.perf_counter() - t0, 1e-6))
+    timings = []
+    for _ in range(3):  # the fastest of three: a busy machine makes the run longer, never shorter
+        t0 = time.perf_counter()
+        jax.block_until_ready(slow(x, 200))
+        timings.append(time.perf_counter() - t0)
+    steps = int(SLOW_S * 200 / max(min(timings), 1e-6))
     monkeypatch.setattr(pipeline, "run_model", lambda params, images, config, compiled, mesh: slow(x, steps))
     assert not model_runner.ABANDONED_FORWARD.is_set()
     timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))

@@ -104,7 +104,7 @@ def test_broken_folders_name_the_missing_file(scene, tmp_path):
     with pytest.raises(DatasetError, match="not found"):
         load_scenes("folder", tmp_path / "nowhere")
     with pytest.raises(DatasetError, match="unknown dataset"):
-        load_scenes("kitti", tmp_path)
+        load_scenes("kittee", tmp_path)
 
 
 def test_7scenes_every_test_sequence_and_raw_depth(scene, tmp_path):
