@@ -44,6 +44,17 @@ def _files(root: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
+def _check_path(out: str | os.PathLike) -> Path:
+    """`out` as a Path; `OutputDirError` when it is a file, or a file stands in its path."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputDirError(f"output path exists and is not a folder: {out}")
+    blocker = _first_existing_file_ancestor(out.parent)
+    if blocker is not None:
+        raise OutputDirError(f"cannot create output folder {out}: {blocker} is a file, not a folder")
+    return out
+
+
 def _first_existing_file_ancestor(p: Path) -> Path | None:
     for q in [p, *p.parents]:
         if q.exists():
@@ -87,12 +98,7 @@ def prepare_output(out: str | os.PathLike, overwrite: bool = False) -> int:
     that already holds entries is refused unless `overwrite`; then the files listed in
     the previous run's manifest are deleted (returned: how many) and nothing else.
     Raises OutputDirError with a one-line reason."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputDirError(f"output path exists and is not a folder: {out}")
-    blocker = _first_existing_file_ancestor(out.parent)
-    if blocker is not None:
-        raise OutputDirError(f"cannot create output folder {out}: {blocker} is a file, not a folder")
+    out = _check_path(out)
     removed = 0
     if out.is_dir():
         entries = sorted(e for e in os.listdir(out) if e != LOCK_NAME)
@@ -120,12 +126,7 @@ def output_lock(out: str | os.PathLike) -> Iterator[None]:
     (`OutputDirError` naming the other run's process) instead of mixing its files with
     this run's. The lock file stays (empty of meaning once unlocked): removing it could
     let a third run lock a new file while a second holds the old one."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputDirError(f"output path exists and is not a folder: {out}")
-    blocker = _first_existing_file_ancestor(out.parent)
-    if blocker is not None:
-        raise OutputDirError(f"cannot create output folder {out}: {blocker} is a file, not a folder")
+    out = _check_path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
         fd = os.open(out / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
