@@ -21,6 +21,8 @@ import jax.numpy as jnp
 from rvggt_jax.app import model_runner, pipeline
 
 SLOW_S = float(sys.argv[1])
+# a pytest-xdist worker ignores SIGINT, and a child inherits that: Ctrl-C's Python handler back
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @jax.jit
