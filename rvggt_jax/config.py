@@ -221,6 +221,20 @@ class VGGTConfig:
         """The published facebook/VGGT-1B layout."""
         return cls()
 
+    @classmethod
+    def rvggt_small(cls) -> "VGGTConfig":
+        """The small VGGT trained here from scratch on procedural scenes and shipped as
+        "rvggt-small" (`rvggt_jax.train.small`): the same architecture at width 128 (4
+        heads), 6 frame/global block pairs, a 3-block DINO patch embed, a 1-block camera
+        trunk, DPT heads of 32 features, a track head of 64 hidden units over 3
+        correlation levels. Trained at 84 x 112 images."""
+        return cls(img_size=112, embed_dim=128, depth=6, num_heads=4,
+                   dino=DinoConfig(depth=3, num_heads=4),
+                   camera_head=CameraHeadConfig(num_heads=8, trunk_depth=1, iters=4),
+                   dpt_head=DPTHeadConfig(features=32, out_channels=(16, 32, 64, 64), intermediate_layer_idx=(1, 3, 4, 5)),
+                   track_head=TrackHeadConfig(features=32, hidden_size=64, corr_levels=3, corr_radius=2, stride=2,
+                                              iters=4)).validate()
+
     def with_outputs(self, saliency: bool = False, layers: tuple[int, ...] = (), images: bool = False,
                      descriptors: bool = False) -> "VGGTConfig":
         """A copy that also returns the saliency / these aggregator layers / the input
@@ -285,8 +299,9 @@ class VGGTConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "VGGTConfig":
         """Build from the extended VGGT `config.json`; unknown keys are an error, except
-        `fixture` (test metadata) and the hub mixin's bookkeeping keys."""
-        ignored = {"fixture", "_name_or_path", "architectures", "model_type"}
+        `fixture` (test metadata), `train_image_size` (the [H, W] a model was trained
+        at) and the hub mixin's bookkeeping keys."""
+        ignored = {"fixture", "_name_or_path", "architectures", "model_type", "train_image_size"}
         return _build(cls, {k: v for k, v in d.items() if k not in ignored}).validate()
 
     @classmethod

@@ -1,4 +1,4 @@
-"""Procedural scenes with exact ground truth: textured planes and boxes seen by known
+"""Procedural scenes with exact ground truth: textured planes, boxes, spheres and cylinders seen by known
 pinhole cameras along a path, rendered by ray casting in numpy.
 
     scene = make_scene(frames=6, height=60, width=80, seed=0)
@@ -17,6 +17,10 @@ checked on these scenes) and meant for fine-tuning data as well.
 `write_scene(scene, fmt, root)` stores a scene in one of the evaluation datasets'
 on-disk formats (`rvggt_jax.eval.datasets.FORMATS`).
 
+`random_scene(seed, frames, ...)` is the training data's family (`rvggt_jax.train.procedural`):
+boxes, spheres and cylinders with checker, noise or stripe textures, a random light and
+focal length, seen along an orbit, a forward walk or from scattered look-at cameras.
+
 `loop_walkthrough(frames, ...)` is a long walk around a closed corridor that returns to
 its start (for the long-sequence pipeline, `rvggt_jax.sequence`): it holds only the
 cameras and the primitives, and renders any subset of frames on demand.
@@ -30,8 +34,9 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["Box", "LoopWalk", "Rect", "SyntheticScene", "camera_centers", "look_at", "loop_walkthrough", "make_scene",
-           "orbit_cameras", "ray_cast", "render", "write_scene"]
+__all__ = ["Box", "Cylinder", "HELD_OUT_SEEDS", "LoopWalk", "PATHS", "Rect", "Sphere", "SyntheticScene", "TEXTURES",
+           "camera_centers", "forward_cameras", "look_at", "lookat_cameras", "loop_walkthrough", "make_scene",
+           "orbit_cameras", "random_room", "random_scene", "ray_cast", "render", "write_scene"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +50,7 @@ class Rect:
     half: tuple[float, float]
     color: tuple[float, float, float]
     freq: float = 4.0
+    texture: str = "checker"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +63,37 @@ class Box:
     half: tuple[float, float, float]
     color: tuple[float, float, float]
     freq: float = 6.0
+    texture: str = "checker"
+
+
+@dataclasses.dataclass(frozen=True)
+class Sphere:
+    """A textured sphere: centre [3], radius."""
+
+    center: tuple[float, float, float]
+    radius: float
+    color: tuple[float, float, float]
+    freq: float = 3.0
+    texture: str = "checker"
+
+
+@dataclasses.dataclass(frozen=True)
+class Cylinder:
+    """A textured upright cylinder with caps: centre [3], radius, half height (along the
+    world y axis)."""
+
+    center: tuple[float, float, float]
+    radius: float
+    half_height: float
+    color: tuple[float, float, float]
+    freq: float = 4.0
+    texture: str = "checker"
+
+
+TEXTURES = ("checker", "noise", "stripes")
+"""Surface patterns: a checkerboard times a ripple (the original scenes'), two octaves of
+value noise, and slanted stripes times a ripple. Each makes every patch of a surface
+distinct enough to match."""
 
 
 @dataclasses.dataclass
@@ -88,12 +125,36 @@ class SyntheticScene:
 # ---------------------------------------------------------------------------------------
 
 
-def _texture(uv: np.ndarray, color: np.ndarray, freq: float) -> np.ndarray:
-    """Colour [N, 3] in [0, 1] of surface coordinates uv [N, 2]: a checkerboard times a
-    smooth ripple, so that every patch of a surface is distinct (matchable)."""
-    checker = (np.floor(uv[:, 0] * freq) + np.floor(uv[:, 1] * freq)) % 2
+def _hash(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    """A fixed pseudo-random value in [0, 1) per integer lattice point."""
+    v = np.sin(ix * 127.1 + iy * 311.7) * 43758.5453
+    return v - np.floor(v)
+
+
+def _value_noise(uv: np.ndarray) -> np.ndarray:
+    """Bilinear value noise [N] in [0, 1) of coordinates uv [N, 2] (one lattice cell per unit)."""
+    i = np.floor(uv)
+    f = uv - i
+    f = f * f * (3.0 - 2.0 * f)  # smoothstep: no creases along the lattice lines
+    a, b = _hash(i[:, 0], i[:, 1]), _hash(i[:, 0] + 1, i[:, 1])
+    c, d = _hash(i[:, 0], i[:, 1] + 1), _hash(i[:, 0] + 1, i[:, 1] + 1)
+    return (a + (b - a) * f[:, 0]) * (1 - f[:, 1]) + (c + (d - c) * f[:, 0]) * f[:, 1]
+
+
+def _texture(uv: np.ndarray, color: np.ndarray, freq: float, kind: str = "checker") -> np.ndarray:
+    """Colour [N, 3] in [0, 1] of surface coordinates uv [N, 2] for a pattern of
+    `TEXTURES`."""
     ripple = 0.5 + 0.5 * np.sin(7.3 * uv[:, 0] + 3.1 * np.cos(5.7 * uv[:, 1]))
-    shade = 0.45 + 0.35 * checker + 0.2 * ripple
+    if kind == "checker":
+        checker = (np.floor(uv[:, 0] * freq) + np.floor(uv[:, 1] * freq)) % 2
+        shade = 0.45 + 0.35 * checker + 0.2 * ripple
+    elif kind == "noise":
+        shade = 0.3 + 0.45 * _value_noise(uv * freq) + 0.25 * _value_noise(uv * freq * 2.7 + 17.0)
+    elif kind == "stripes":
+        stripe = (np.floor((uv[:, 0] + 0.6 * uv[:, 1]) * freq) % 2)
+        shade = 0.4 + 0.35 * stripe + 0.25 * ripple
+    else:
+        raise ValueError(f"unknown texture {kind!r}; known: {', '.join(TEXTURES)}")
     return np.clip(color[None, :] * shade[:, None], 0.0, 1.0)
 
 
@@ -138,35 +199,88 @@ def _hit_box(o: np.ndarray, d: np.ndarray, b: Box):
     return t, normal_l @ rot.T, uv
 
 
-def ray_cast(origin: np.ndarray, directions: np.ndarray, primitives: Sequence[Rect | Box]):
+def _hit_sphere(o: np.ndarray, d: np.ndarray, sp: Sphere):
+    c = np.asarray(sp.center, np.float64)
+    oc = o - c
+    a = np.einsum("ij,ij->i", d, d)
+    b = 2.0 * (d @ oc)
+    disc = b * b - 4.0 * a * (oc @ oc - sp.radius ** 2)
+    with np.errstate(invalid="ignore"):
+        t = (-b - np.sqrt(disc)) / (2.0 * a)  # the near root: cameras are outside every sphere
+    ok = (disc >= 0) & (t > 1e-6)
+    t = np.where(ok, t, np.inf)
+    n = (o[None, :] + np.where(ok, t, 0.0)[:, None] * d - c) / sp.radius
+    # texture coordinates: arc lengths along the azimuth and the polar angle
+    uv = sp.radius * np.stack([np.arctan2(n[:, 0], n[:, 2]), np.arcsin(np.clip(n[:, 1], -1, 1))], axis=1)
+    return t, n, uv
+
+
+def _hit_cylinder(o: np.ndarray, d: np.ndarray, cy: Cylinder):
+    c = np.asarray(cy.center, np.float64)
+    ox, oy, oz = o - c
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+    a = dx * dx + dz * dz
+    b = 2.0 * (ox * dx + oz * dz)
+    disc = b * b - 4.0 * a * (ox * ox + oz * oz - cy.radius ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t_side = (-b - np.sqrt(disc)) / (2.0 * a)
+        y_side = oy + t_side * dy
+        side_ok = (disc >= 0) & (a > 1e-12) & (t_side > 1e-6) & (np.abs(y_side) <= cy.half_height)
+        t_side = np.where(side_ok, t_side, np.inf)
+        # the cap facing the camera: y = -h when the camera is above it (y points down), else +h
+        cap_y = -cy.half_height if oy < 0 else cy.half_height
+        t_cap = (cap_y - oy) / dy
+        px, pz = ox + t_cap * dx, oz + t_cap * dz
+        cap_ok = np.isfinite(t_cap) & (t_cap > 1e-6) & (px * px + pz * pz <= cy.radius ** 2)
+    t_cap = np.where(cap_ok, t_cap, np.inf)
+    on_cap = t_cap < t_side
+    t = np.minimum(t_side, t_cap)
+    tt = np.where(np.isfinite(t), t, 0.0)
+    hx, hy, hz = ox + tt * dx, oy + tt * dy, oz + tt * dz
+    n = np.where(on_cap[:, None], np.array([0.0, np.sign(cap_y), 0.0]),
+                 np.stack([hx, np.zeros_like(hx), hz], axis=1) / cy.radius)
+    uv = np.where(on_cap[:, None], np.stack([hx, hz], axis=1),
+                  np.stack([cy.radius * np.arctan2(hx, hz), hy], axis=1))
+    return t, n, uv
+
+
+_HITS = {Rect: _hit_rect, Box: _hit_box, Sphere: _hit_sphere, Cylinder: _hit_cylinder}
+
+DEFAULT_LIGHT = (0.3, -0.8, -0.5)
+"""The direction light travels in (world, y down: from above, in front, to the right)."""
+
+
+def ray_cast(origin: np.ndarray, directions: np.ndarray, primitives: Sequence[Rect | Box | Sphere | Cylinder],
+             light: Sequence[float] = DEFAULT_LIGHT):
     """Nearest hits of rays from `origin` [3] along `directions` [N, 3] (any length).
 
     Returns t [N] (ray parameter, inf = no hit), unit world normals [N, 3] facing the
-    ray, colours [N, 3] in [0, 1] (texture x Lambert shading)."""
+    ray, colours [N, 3] in [0, 1] (texture x Lambert shading of a light travelling along
+    `light` [3], plus ambient)."""
     o = np.asarray(origin, np.float64)
     d = np.asarray(directions, np.float64)
     best = np.full(len(d), np.inf)
     normal = np.zeros_like(d)
     color = np.zeros_like(d)
     for prim in primitives:
-        t, n, uv = (_hit_rect if isinstance(prim, Rect) else _hit_box)(o, d, prim)
+        t, n, uv = _HITS[type(prim)](o, d, prim)
         closer = t < best
         if not closer.any():
             continue
         best = np.where(closer, t, best)
         normal[closer] = n[closer]
-        color[closer] = _texture(uv[closer], np.asarray(prim.color, np.float64), prim.freq)
+        color[closer] = _texture(uv[closer], np.asarray(prim.color, np.float64), prim.freq, prim.texture)
     # normals face the camera (a plane seen from behind shows its back)
     flip = np.sum(normal * d, axis=1) > 0
     normal[flip] *= -1
-    light = np.array([0.3, -0.8, -0.5]) / np.linalg.norm([0.3, -0.8, -0.5])
+    light = np.asarray(light, np.float64) / np.linalg.norm(light)
     lambert = 0.55 + 0.45 * np.clip(-(normal @ light), 0.0, 1.0)
     color *= lambert[:, None]
     return best, normal, color
 
 
 def render(extrinsic: np.ndarray, intrinsic: np.ndarray, height: int, width: int,
-           primitives: Sequence[Rect | Box]):
+           primitives: Sequence[Rect | Box | Sphere | Cylinder], light: Sequence[float] = DEFAULT_LIGHT):
     """One frame: extrinsic [3, 4] world-to-camera, intrinsic [3, 3] -> image [H, W, 3]
     uint8, depth [H, W] float32 (0 = no hit), points [H, W, 3] float32 (NaN = no hit),
     normals [H, W, 3] float32."""
@@ -176,7 +290,7 @@ def render(extrinsic: np.ndarray, intrinsic: np.ndarray, height: int, width: int
     pix = np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)], axis=1)
     rays_cam = pix @ np.linalg.inv(intrinsic).T  # z = 1: the ray parameter is the depth
     rays_world = rays_cam @ r  # R^T applied to each row
-    tt, normal, color = ray_cast(center, rays_world, primitives)
+    tt, normal, color = ray_cast(center, rays_world, primitives, light)
     hit = np.isfinite(tt)
     depth = np.where(hit, tt, 0.0)
     pts = center[None, :] + np.where(hit, tt, np.nan)[:, None] * rays_world
@@ -269,6 +383,126 @@ def make_scene(frames: int = 6, height: int = 60, width: int = 80, seed: int = 0
     imgs, depth, pts, nrm = (np.stack(x) for x in zip(*outs))
     return SyntheticScene(name=name or f"synthetic_{seed:03d}", images=imgs, depth=depth, points=pts, normals=nrm,
                           extrinsics=ext, intrinsics=np.repeat(k[None], frames, axis=0), primitives=prims)
+
+
+# ---------------------------------------------------------------------------------------
+# varied scenes for training: more primitives, textures, lights and camera paths
+# ---------------------------------------------------------------------------------------
+
+PATHS = ("orbit", "forward", "lookat")
+"""Camera paths of `random_scene`: an arc around the room's middle (`orbit_cameras`), a
+walk forward into the room (`forward_cameras`), cameras scattered over the room looking
+at random points of its middle (`lookat_cameras`, large baselines)."""
+
+HELD_OUT_SEEDS = range(0, 100_000)
+"""Seeds kept for evaluation: the shipped small model never trained on `make_scene` or
+`random_scene` with these seeds (`rvggt_jax.train.procedural` draws from 100000 up)."""
+
+
+def _color(rng: np.random.Generator) -> tuple:
+    return tuple(float(x) for x in rng.uniform(0.25, 1.0, 3))
+
+
+def random_room(rng: np.random.Generator, objects: int | None = None) -> tuple:
+    """A room like `room` (floor at y = 1, back and side walls), its size, textures and
+    colours drawn, holding `objects` (default 2 to 6) boxes, spheres and cylinders
+    resting on the floor within x, z in [-1.3, 1.3] x [-0.7, 1.5]. Every object's top is
+    below y = 0.1, so a camera with y <= -0.1 inside the walls is inside no object."""
+    tex = lambda: TEXTURES[int(rng.integers(len(TEXTURES)))]  # noqa: E731
+    half_w, depth_back = rng.uniform(2.3, 3.0), rng.uniform(2.2, 3.2)
+    prims: list = [
+        Rect((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (half_w + 0.5, 3.5), _color(rng),
+             float(rng.uniform(1.0, 3.0)), tex()),
+        Rect((0.0, -0.5, depth_back), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (half_w + 0.5, 1.5), _color(rng),
+             float(rng.uniform(1.5, 4.0)), tex()),
+        Rect((-half_w, -0.5, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (3.5, 1.5), _color(rng),
+             float(rng.uniform(1.5, 4.0)), tex()),
+        Rect((half_w, -0.5, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (3.5, 1.5), _color(rng),
+             float(rng.uniform(1.5, 4.0)), tex()),
+    ]
+    n = int(rng.integers(2, 7)) if objects is None else int(objects)
+    for _ in range(n):
+        kind = rng.choice(["box", "sphere", "cylinder"])
+        x, z = rng.uniform(-1.3, 1.3), rng.uniform(-0.7, 1.5)
+        freq = float(rng.uniform(3.0, 8.0))
+        if kind == "box":
+            half = tuple(float(v) for v in rng.uniform(0.15, 0.45, 3))
+            prims.append(Box((x, 1.0 - half[1], z), _rot_y(rng.uniform(0, 90)), half, _color(rng), freq, tex()))
+        elif kind == "sphere":
+            r = float(rng.uniform(0.15, 0.45))
+            prims.append(Sphere((x, 1.0 - r, z), r, _color(rng), freq, tex()))
+        else:
+            r, h = float(rng.uniform(0.12, 0.35)), float(rng.uniform(0.15, 0.45))
+            prims.append(Cylinder((x, 1.0 - h, z), r, h, _color(rng), freq, tex()))
+    return tuple(prims)
+
+
+def forward_cameras(frames: int, rng: np.random.Generator) -> np.ndarray:
+    """`frames` world-to-camera [S, 3, 4] walking forward (+z) into the room: from z in
+    [-3.2, -2.2] over 0.4 to 1.6 m, sideways drift, a slowly turning heading (up to 15
+    degrees either way) pitched down 5 to 25 degrees."""
+    start = np.array([rng.uniform(-1.0, 1.0), rng.uniform(-0.9, -0.25), rng.uniform(-3.2, -2.2)])
+    dist, drift = rng.uniform(0.4, 1.6), rng.uniform(-0.4, 0.4)
+    yaw0, yaw1 = np.deg2rad(rng.uniform(-15, 15, 2))
+    pitch = np.deg2rad(rng.uniform(5, 25))
+    out = []
+    for f in np.linspace(0.0, 1.0, frames):
+        c = start + np.array([drift * f, 0.0, dist * f])
+        yaw = yaw0 + (yaw1 - yaw0) * f
+        look = np.array([np.sin(yaw), np.tan(pitch), np.cos(yaw)])
+        out.append(look_at(c, c + look))
+    return np.stack(out)
+
+
+def lookat_cameras(frames: int, rng: np.random.Generator) -> np.ndarray:
+    """`frames` world-to-camera [S, 3, 4] at random places in front of and over the room
+    (x in [-2, 2], y in [-1.3, -0.2], z in [-3.2, 0.3]), each looking at a random point of
+    the room's middle: baselines of metres between any two frames."""
+    out = []
+    while len(out) < frames:
+        c = np.array([rng.uniform(-2.0, 2.0), rng.uniform(-1.3, -0.2), rng.uniform(-3.2, 0.3)])
+        t = np.array([rng.uniform(-0.8, 0.8), rng.uniform(0.2, 0.9), rng.uniform(-0.2, 1.4)])
+        if np.linalg.norm(t - c) >= 1.0:
+            out.append(look_at(c, t))
+    return np.stack(out)
+
+
+def random_scene(seed: int, frames: int | None = None, height: int = 60, width: int = 80, *,
+                 path: str | None = None, name: str | None = None) -> SyntheticScene:
+    """A varied scene for training, deterministic in `seed`: a `random_room`, a random
+    light, a focal length of 0.7 to 1.2 x width, and `frames` cameras (default 2 to 24,
+    drawn) on a path of `PATHS` (default drawn: orbit 1/2, forward 1/4, lookat 1/4).
+    Orbits vary `make_scene`'s: radius 2.4 to 3.4, arcs of 20 to 90 degrees kept inside
+    the side walls."""
+    rng = np.random.default_rng([int(seed), 0x5CE7E])  # a stream of its own: not make_scene's for the same seed
+    n = int(rng.integers(2, 25)) if frames is None else int(frames)
+    if n < 1 or height < 2 or width < 2:
+        raise ValueError(f"need frames >= 1 and an image of at least 2x2 pixels; got {n}, {width}x{height}")
+    kind = path or str(rng.choice(PATHS, p=[0.5, 0.25, 0.25]))
+    if kind not in PATHS:
+        raise ValueError(f"unknown camera path {kind!r}; known: {', '.join(PATHS)}")
+    prims = random_room(rng)
+    light = np.array([rng.uniform(-0.6, 0.6), -1.0, rng.uniform(-0.8, 0.3)])
+    f = float(rng.uniform(0.7, 1.2)) * width
+    k = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    if kind == "orbit":
+        radius = float(rng.uniform(2.4, 3.4))
+        # keep |x| = radius sin(angle) < 2.2 so every camera stays between the side walls
+        max_half = min(45.0, float(np.rad2deg(np.arcsin(min(1.0, 2.2 / radius)))))
+        arc = float(rng.uniform(20.0, 2 * max_half - 10.0))
+        phase = float(rng.uniform(-(max_half - arc / 2), max_half - arc / 2))
+        ext = orbit_cameras(n, radius=radius, height=float(rng.uniform(-0.9, -0.15)), arc_deg=arc,
+                            target=(float(rng.uniform(-0.3, 0.3)), float(rng.uniform(0.0, 0.5)),
+                                    float(rng.uniform(-0.2, 0.6))),
+                            phase_deg=phase, jitter=0.05, rng=rng)
+    elif kind == "forward":
+        ext = forward_cameras(n, rng)
+    else:
+        ext = lookat_cameras(n, rng)
+    outs = [render(e, k, height, width, prims, light) for e in ext]
+    imgs, depth, pts, nrm = (np.stack(x) for x in zip(*outs))
+    return SyntheticScene(name=name or f"random_{kind}_{seed}", images=imgs, depth=depth, points=pts, normals=nrm,
+                          extrinsics=ext, intrinsics=np.repeat(k[None], n, axis=0), primitives=prims)
 
 
 def write_scene(scene: SyntheticScene, fmt: str, root: str | Path) -> Path:

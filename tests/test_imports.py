@@ -209,7 +209,7 @@ IMPORT_RULES = {
     "eval": {"geometry", "io", "model", "weights"},
     "train": {"config", "geometry", "eval", "model", "parallel", "synthetic", "weights"},
     "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},
-    "examples_data": set(),
+    "examples_data": {"synthetic", "eval"},  # generate.py renders the demo scene (folder format)
     "diagnostics": {"config", "compression", "model", "planning"},
 }
 ANYTHING = ("app", "convert")  # the command line and the `python -m rvggt_jax.convert` entry

@@ -9,7 +9,7 @@ import shlex
 
 import pytest
 
-from tests.helpers import DEMO_IMAGES as IMAGES, REPO, TINY
+from tests.helpers import SAMPLE_IMAGES as IMAGES, REPO, TINY
 SUBSTITUTE = {'"facebook/VGGT-1B"': repr(str(TINY)), '"my_images/*.jpg"': repr(str(IMAGES / "*.jpg"))}
 
 

@@ -6,11 +6,15 @@ in `rvggt_jax.app.commands`, `rvggt_jax.app.pipeline` and `rvggt_jax.io`).
                                           INPUT: a folder of images or a video file;
                                           CKPT: a local checkpoint or a hub repo id
                                           (facebook/VGGT-1B: downloaded, converted once)
-    rvggt view OUT_DIR [--port P]         interactive 3D viewer (viser) on localhost
-    rvggt demo [--out DIR]                the whole pipeline on bundled images with a
-                                          tiny RANDOM-weight model (seconds)
+    rvggt view OUT_DIR [--port P]         interactive 3D viewer (viser) on localhost;
+          [--weights CKPT]                with an upload form that reconstructs new images
+    rvggt demo [--out DIR] [--ba]         the whole pipeline on a bundled held-out procedural
+                                          scene with rvggt-small, the small VGGT trained
+                                          here, and its errors against the true cameras
     rvggt finetune DATA_DIR --out DIR     fine-tune on images + cameras (+ depth); see
                                           docs/training.md (`rvggt_jax.train`)
+    rvggt train-small --out DIR           train the shipped small model ("rvggt-small")
+                                          from scratch on procedural scenes; resumable
     rvggt analyze IMAGES --weights CKPT --out DIR
                                           the paper's diagnostics: attention rank per
                                           layer, saliency and K/V coverage maps
@@ -103,7 +107,7 @@ def _port(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from rvggt_jax import __version__
-    from rvggt_jax.app.commands import RANDOM_WEIGHTS_NOTICE
+    from rvggt_jax.app.commands import DEMO_NOTICE
 
     parser = _Parser(prog=PROG, description="VGGT feed-forward 3D reconstruction in JAX.")
     parser.add_argument("--version", action="version", version=f"{PROG} (rvggt-jax) {__version__}")
@@ -118,25 +122,41 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("view", help="interactive 3D viewer of a reconstruction (in the browser, localhost)",
                        description="Serve an interactive viewer of OUT_DIR (points with a confidence slider, camera "
-                                   "frustums with their images, frame selection) on http://localhost:PORT.")
+                                   "frustums with their images, frame selection, a black / white background "
+                                   "filter, points from depth or the point map with predictions.npz of --save-raw; "
+                                   "with --weights, an upload form that reconstructs new images) on "
+                                   "http://localhost:PORT.")
     p.add_argument("out_dir", metavar="OUT_DIR", help="folder written by `rvggt reconstruct`")
     p.add_argument("--port", type=_port, default=8080, help="port on localhost, 1-65535 (default %(default)s)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine only)")
+    p.add_argument("--weights", default=None, metavar="CKPT",
+                   help="also offer an upload form in the page: images (or a .zip of them, or a video) uploaded "
+                        "there are reconstructed on this machine with CKPT (as `rvggt reconstruct --weights CKPT "
+                        "--save-raw`) into a new folder of --work-dir, then shown; anyone who can open the page "
+                        "can run it (mind --host)")
+    p.add_argument("--work-dir", default=None, metavar="DIR",
+                   help="with --weights: where the uploads and their reconstructions go, DIR/upload_001/{input,"
+                        "reconstruction}, ... (default rvggt_uploads)")
 
-    p = sub.add_parser("demo", help="run the pipeline on bundled images with a tiny RANDOM-weight model",
-                       description=RANDOM_WEIGHTS_NOTICE)
+    p = sub.add_parser("demo", help="reconstruct a bundled held-out scene with the bundled trained small model",
+                       description=DEMO_NOTICE)
     p.add_argument("--out", default="rvggt_demo", metavar="DIR", help="output folder (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier demo run in DIR")
+    p.add_argument("--ba", action="store_true",
+                   help="also bundle-adjust the cameras with the model's tracks (the [ba] extra: pycolmap) and "
+                        "report the reprojection error before and after")
+    _view_options(p)
     _common_options(p, presets)
 
     from rvggt_jax.app.eval_command import add_eval_parser
-    from rvggt_jax.app.finetune_command import add_finetune_parser
+    from rvggt_jax.app.finetune_command import add_finetune_parser, add_train_small_parser
     from rvggt_jax.app.plan_command import add_plan_parser
     from rvggt_jax.app.diagnostics_command import add_diagnostics_parsers
 
     add_eval_parser(sub)
     add_diagnostics_parsers(sub)
     add_finetune_parser(sub)
+    add_train_small_parser(sub)
     add_plan_parser(sub)
     return parser
 
@@ -158,9 +178,14 @@ def _add_reconstruct_parser(sub, presets: str) -> None:
                    help="reuse a non-empty output folder: delete the files the previous rvggt run there wrote "
                         "(listed in its .rvggt-manifest.json) and nothing else")
     _common_options(p, presets)
+    _view_options(p)
     p.add_argument("--mode", default=_DEFAULTS.mode, choices=("crop", "pad"),
                    help="crop: width 518, height centre-cropped to <= 518 (default); "
-                        "pad: longest side 518, white-padded to square")
+                        "pad: longest side 518, white-padded to square (518: see --size)")
+    p.add_argument("--size", type=int, default=None, metavar="N",
+                   help="network size in place of 518 (crop: the width; pad: the longest side), a multiple of 14; "
+                        "default: the size the checkpoint was trained at when its config.json records it "
+                        "(rvggt-small: 112), else 518")
     p.add_argument("--conf-threshold", default=_DEFAULTS.conf_threshold, metavar="X",
                    help="keep points whose confidence is >= X (VGGT confidences are >= 1), or, written "
                         "'P%%', at or above the P-th percentile of all confidences (default %(default)s; "
@@ -283,6 +308,26 @@ def _ba_options(args: argparse.Namespace):
     return BAOptions(**given)
 
 
+def _view_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--view", action="store_true",
+                   help="then serve the interactive viewer on the result (as `rvggt view OUT`; Ctrl-C stops it)")
+    p.add_argument("--port", type=_port, default=8080, help="the viewer's port on localhost with --view (default "
+                                                            "%(default)s)")
+
+
+def _check_view(args: argparse.Namespace) -> None:
+    """--view's port is checked before the reconstruction runs (not found taken after it)."""
+    if args.command in ("reconstruct", "demo") and getattr(args, "view", False):
+        from rvggt_jax.app.viewer import ViewerError, check_bindable
+
+        try:
+            check_bindable("127.0.0.1", args.port)
+        except ViewerError as e:
+            raise CLIError(f"--view: {e}") from None
+    elif args.command in ("reconstruct", "demo") and args.port != 8080:
+        raise CLIError("--port applies with --view")
+
+
 def _common_options(p: argparse.ArgumentParser, presets: str) -> None:
     p.add_argument("--preset", default=None, metavar="NAME|FILE",
                    help=f"compression preset of the global attention ({presets}), or a preset file path.json "
@@ -298,9 +343,11 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
     only --preset, --dtype, --overwrite and --quiet: the others keep their defaults)."""
     common = dict(preset=args.preset, dtype=args.dtype, overwrite=args.overwrite, quiet=args.quiet)
     if args.command == "demo":
-        return ReconstructOptions(**common)
+        from rvggt_jax.ba.refine import BAOptions
+
+        return ReconstructOptions(**common, ba=BAOptions() if args.ba else None)
     return ReconstructOptions(
-        **common, mode=args.mode, max_frames=args.max_frames, every=args.every, fps=args.fps,
+        **common, mode=args.mode, size=args.size, max_frames=args.max_frames, every=args.every, fps=args.fps,
         skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, masks=args.masks, devices=args.devices,
         conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
         all_colmap_points=args.all_colmap_points, camera_type=args.camera_type, shared_camera=args.shared_camera,
@@ -331,14 +378,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         from rvggt_jax.app.commands import demo, reconstruct_folder
 
+        _check_view(args)
         if args.command == "reconstruct":
             reconstruct_folder(args.images_dir, args.weights, args.out, reconstruct_options(args))
         elif args.command == "view":
             from rvggt_jax.app.viewer import serve
 
-            serve(args.out_dir, port=args.port, host=args.host)
+            serve(args.out_dir, port=args.port, host=args.host, weights=args.weights, work_dir=args.work_dir)
         elif args.command == "demo":
             demo(args.out, reconstruct_options(args))
+        if args.command in ("reconstruct", "demo") and args.view:
+            from rvggt_jax.app.viewer import serve
+
+            serve(args.out, port=args.port)
         elif args.command == "eval":
             from rvggt_jax.app.eval_command import run_eval_command
 
@@ -347,6 +399,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from rvggt_jax.app.finetune_command import run_finetune_command
 
             run_finetune_command(args)
+        elif args.command == "train-small":
+            from rvggt_jax.app.finetune_command import run_train_small_command
+
+            run_train_small_command(args)
         elif args.command in ("analyze", "calibrate"):
             from rvggt_jax.app import diagnostics_command as diag
 

@@ -106,7 +106,7 @@ def _prepare(out: Path, args) -> None:
 def _load_scene(folder: Path, args) -> tuple[np.ndarray, list[str]]:
     """images [S, 3, H, W] of a folder (at most --max-frames, --size wide) and their names."""
     from rvggt_jax.app.options import select_frames
-    from rvggt_jax.io.images import ImageLoadError, find_images, load_images_with_info
+    from rvggt_jax.io.images import TARGET_SIZE, ImageLoadError, find_images, load_images_with_info
 
     try:
         paths, _ = find_images(folder)
@@ -115,8 +115,14 @@ def _load_scene(folder: Path, args) -> tuple[np.ndarray, list[str]]:
     if not paths:
         raise CLIError(f"no images in {folder}")
     paths = select_frames(paths, args.max_frames)
+    target = TARGET_SIZE
+    if args.size is None and getattr(args, "weights", None) is not None:
+        # a checkpoint trained at another size (rvggt-small: 112) is measured at that size
+        from rvggt_jax.app.model_runner import resolve_weights, trained_width
+
+        target = trained_width(resolve_weights(args.weights, True)) or TARGET_SIZE
     try:
-        images, _ = load_images_with_info(paths)
+        images, _ = load_images_with_info(paths, target=target)
     except ImageLoadError as e:
         raise CLIError(str(e)) from None
     if args.size is not None and args.size != images.shape[-1]:
@@ -147,10 +153,13 @@ def _preset(value: str, depth: int):
 
 
 def _is_random(config, weights) -> bool:
-    from rvggt_jax.app.commands import DEMO_WEIGHTS
+    """Whether `weights` is the bundled random-weight model (its numbers mean nothing)."""
+    from rvggt_jax.app.commands import TINY_WEIGHTS
 
+    if str(weights) == "tiny-random":
+        return True
     try:
-        return Path(weights).resolve() == DEMO_WEIGHTS.resolve() or config.embed_dim < 256
+        return Path(weights).resolve() == TINY_WEIGHTS.resolve()
     except (OSError, TypeError):
         return False
 

@@ -17,10 +17,12 @@ from pathlib import Path
 __all__ = ["SequencePredictor", "add_eval_parser", "run_eval_command", "write_synthetic_set"]
 
 SYNTHETIC_SCENES = 2
-RANDOM_WEIGHTS_NOTICE = (
-    "NOTE: no --weights: rvggt eval runs the tiny RANDOM-weight model (rvggt_jax/examples_data/tiny): the whole "
-    "pipeline runs, the scores are meaningless. For the paper's numbers pass --weights with converted VGGT-1B "
-    "weights (`rvggt convert`).")
+DEFAULT_WEIGHTS = "rvggt-small"
+DEFAULT_WEIGHTS_NOTICE = (
+    "NOTE: no --weights: rvggt eval runs rvggt-small, the small VGGT trained here on procedural scenes "
+    "(rvggt_jax/examples_data/rvggt_small): its scores mean something on procedural scenes (--synthetic writes "
+    "held-out ones), not on real data. For the paper's numbers pass --weights facebook/VGGT-1B; "
+    "--weights tiny-random runs the random-weight test model.")
 
 
 def add_eval_parser(sub) -> None:
@@ -39,7 +41,8 @@ def add_eval_parser(sub) -> None:
     p.add_argument("--presets", default="dense,regime", metavar="P1,P2",
                    help="comma-separated compression presets (default %(default)s)")
     p.add_argument("--weights", default=None, metavar="CKPT",
-                   help="checkpoint (default: the bundled tiny RANDOM-weight model, for trying the pipeline)")
+                   help="checkpoint (default: rvggt-small, the bundled small model trained on procedural scenes; "
+                        "tiny-random: the random-weight test model)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--frames", type=int, default=None, metavar="N",
@@ -49,8 +52,9 @@ def add_eval_parser(sub) -> None:
                    help="how --frames picks frames (default: the protocol's, else first)")
     p.add_argument("--seed", type=int, default=0, help="seed of --sampling random (default 0)")
     p.add_argument("--scenes", default=None, metavar="S1,S2", help="comma-separated scene names (default: all)")
-    p.add_argument("--size", type=int, default=518, metavar="W",
-                   help="network image width, a multiple of 14 (default 518, the paper's 518x392)")
+    p.add_argument("--size", type=int, default=None, metavar="W",
+                   help="network image width, a multiple of 14 (default: the size the checkpoint was trained at "
+                        "when its config.json records it, rvggt-small's 112; else 518, the paper's 518x392)")
     p.add_argument("--against", default=None, metavar="PRESET",
                    help="score each preset against this preset's outputs instead of ground truth (e.g. dense)")
     p.add_argument("--gt-root", default=None, metavar="DIR", help="ScanNet: folder of <scene>/<scene>_vh_clean_2.ply")
@@ -69,10 +73,13 @@ def add_eval_parser(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars or messages")
 
 
-def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES, frames: int | None = None) -> list[Path]:
-    """`scenes` procedural scenes (`rvggt_jax.synthetic`) of 84x63 frames in `dataset`'s
-    format under `root` (with the 7 Scenes calibration f = 525 x 84 / 640, which every
-    format can store).
+def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES, frames: int | None = None,
+                        size: int = 518) -> list[Path]:
+    """`scenes` held-out procedural scenes (`rvggt_jax.synthetic.make_scene`, seeds 0, 1,
+    ...) in `dataset`'s format under `root`, with the 7 Scenes calibration f = 525 x w / 640
+    (which every format can store). Frames are w x h = 112 x 84 when the network size is
+    112 or more (rvggt-small's own size), else size x 3/4 size: a numpy ray caster
+    renders them, so larger networks get them upsampled.
     frames: per scene; default 21 where the protocol keeps every 10th frame (3 kept),
     else 8."""
     from rvggt_jax.eval.protocols import PROTOCOLS
@@ -82,7 +89,8 @@ def write_synthetic_set(dataset: str, root: Path, scenes: int = SYNTHETIC_SCENES
         p = PROTOCOLS.get(dataset)
         frames = 2 * p.stride + 1 if p is not None and p.stride > 1 else 8
 
-    w, h = 84, 63
+    w = min(int(size), 112)
+    h = w * 3 // 4
     return [write_scene(make_scene(frames, h, w, seed=i, focal=(525 * w / 640, 525 * h / 480),
                                    name=f"synthetic_{i + 1:03d}"), dataset, root) for i in range(scenes)]
 
@@ -97,11 +105,9 @@ class SequencePredictor:
                  size: int = 518, quiet: bool = True):
         import rvggt_jax
 
-        if size != 518:  # the chunked pipeline reads images as `rvggt reconstruct` does
-            raise ValueError("--size applies to one-forward runs only: the chunked pipeline runs at width 518")
         self.params, self.config = rvggt_jax.load_pretrained(weights, skip_track=True)
         self.options = dict(chunk_frames=chunk_frames, overlap=overlap, loop_closure=loop_closure, mode="crop",
-                            cache_dir=None, quiet=quiet)
+                            cache_dir=None, quiet=quiet, size=size)
 
     def __call__(self, preset: str, image_paths, scene=None, **_) -> tuple[dict, dict]:
         import numpy as np
@@ -169,8 +175,8 @@ def _fail(msg: str):
 def run_eval_command(args: argparse.Namespace) -> list[dict]:
     """Execute a parsed `rvggt eval`; raises `rvggt_jax.app.messages.CLIError` on bad input."""
     from rvggt_jax.app.messages import one_line as _one_line
-    from rvggt_jax.app.commands import DEMO_WEIGHTS
-    from rvggt_jax.app.model_runner import enable_compilation_cache
+    from rvggt_jax.app.model_runner import enable_compilation_cache, resolve_weights, trained_width
+    from rvggt_jax.weights.pretrained import BUNDLED
     from rvggt_jax.app.options import known_presets
     from rvggt_jax.eval.datasets import DatasetError
     from rvggt_jax.eval.protocols import AGAINST_HIGHER, AGAINST_METRICS, PROTOCOLS
@@ -188,7 +194,7 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
         _fail(f"--frames must be at least 1; got {args.frames}")
     if args.stride is not None and args.stride < 1:
         _fail(f"--stride must be at least 1; got {args.stride}")
-    if args.size < 14 or args.size % 14:
+    if args.size is not None and (args.size < 14 or args.size % 14):
         _fail(f"--size must be a positive multiple of 14; got {args.size}")
     chunking = _sequence_options(args)
     _check_extras(args)
@@ -196,14 +202,17 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
         _fail("--dataset images has no ground truth: add --against dense")
     weights = args.weights
     if weights is None:
-        say(RANDOM_WEIGHTS_NOTICE)
-        weights = str(DEMO_WEIGHTS)
+        say(DEFAULT_WEIGHTS_NOTICE)
+        weights = DEFAULT_WEIGHTS
+    if weights in BUNDLED:
+        weights = str(resolve_weights(weights, args.quiet))
     elif not Path(weights).exists():
         _fail(f"checkpoint not found: {weights}")
+    size = args.size or trained_width(weights) or 518
     root = Path(args.root)
     if args.synthetic:
         root.mkdir(parents=True, exist_ok=True)
-        made = write_synthetic_set(args.dataset, root)
+        made = write_synthetic_set(args.dataset, root, size=size)
         say(f"wrote {len(made)} synthetic scene(s) in {args.dataset} format under {root}")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -212,13 +221,13 @@ def run_eval_command(args: argparse.Namespace) -> list[dict]:
     settings = EvalSettings(
         dataset=args.dataset, root=str(root), presets=presets, out=str(out), weights=str(weights), frames=args.frames,
         stride=args.stride, sampling=args.sampling, seed=args.seed,
-        scenes=tuple(s.strip() for s in args.scenes.split(",")) if args.scenes else None, size=args.size,
+        scenes=tuple(s.strip() for s in args.scenes.split(",")) if args.scenes else None, size=size,
         against=args.against, gt_root=args.gt_root, **chunking)
     enable_compilation_cache()
     factory = Predictor
     if chunking:
         def factory(w):
-            return SequencePredictor(w, size=args.size, quiet=args.quiet, **chunking)
+            return SequencePredictor(w, size=size, quiet=args.quiet, **chunking)
     t0 = time.perf_counter()
     try:
         rows = evaluate(settings, progress=not args.quiet, say=say, predictor_factory=factory)

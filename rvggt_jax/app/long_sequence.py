@@ -121,11 +121,12 @@ class ChunkedRun:
         return pred, depth, valid[:n], infos[:n]
 
     def _load(self, frames: list[int]):
-        from rvggt_jax.io.images import ImageLoadError, load_images_with_info
+        from rvggt_jax.io.images import TARGET_SIZE, ImageLoadError, load_images_with_info
 
         try:
             images, infos = load_images_with_info([self.paths[f] for f in frames], mode=self.options.mode,
-                                                  exif_orientation=self.options.exif_orientation, pad_to=self.hw)
+                                                  exif_orientation=self.options.exif_orientation, pad_to=self.hw,
+                                                  target=self.options.size or TARGET_SIZE)
         except ImageLoadError as e:
             raise CLIError(str(e)) from None
         if images.shape[2:] != tuple(self.hw):
@@ -220,7 +221,7 @@ def resolve_chunk_frames(value, config, hw, options: ReconstructOptions, frames:
 
 def predict_sequence(image_paths: Sequence[Path], params, config, *, chunk_frames: int, overlap: int,
                      loop_closure: bool = False, mode: str = "crop", cache_dir: Path | None = None,
-                     quiet: bool = True, conf_threshold: str = "50%"):
+                     quiet: bool = True, conf_threshold: str = "50%", size: int = 518):
     """The `rvggt_jax.sequence.Trajectory` of the images `image_paths` (in order) predicted
     chunk by chunk by the model (`params`, `config`) and aligned, for the evaluation of
     long sequences. Chunks go to `cache_dir` (default: a temporary folder)."""
@@ -231,9 +232,9 @@ def predict_sequence(image_paths: Sequence[Path], params, config, *, chunk_frame
     from rvggt_jax.sequence import ChunkStore
 
     paths = [Path(p) for p in image_paths]
-    options = ReconstructOptions(mode=mode, chunk_frames=chunk_frames, overlap=overlap, loop_closure=loop_closure,
-                                 quiet=quiet, conf_threshold=conf_threshold)
-    hw, _ = network_shape(paths, mode)
+    options = ReconstructOptions(mode=mode, size=size, chunk_frames=chunk_frames, overlap=overlap,
+                                 loop_closure=loop_closure, quiet=quiet, conf_threshold=conf_threshold)
+    hw, _ = network_shape(paths, mode, target=size)
     if loop_closure:
         config = config.with_outputs(descriptors=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -304,7 +305,7 @@ def reconstruct_chunked(chosen: list[Path], source: Path, weights, local_weights
     t0 = time.perf_counter()
     try:
         hw, bad = network_shape(chosen, options.mode, exif_orientation=options.exif_orientation,
-                                on_error="skip" if options.skip_bad else "raise")
+                                on_error="skip" if options.skip_bad else "raise", target=options.size or 518)
     except ImageLoadError as e:
         raise CLIError(f"{e} (--skip-bad leaves unreadable images out)") from None
     for p in bad:

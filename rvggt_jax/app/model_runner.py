@@ -14,14 +14,34 @@ from rvggt_jax.app.messages import CLIError, one_line
 
 
 def resolve_weights(weights: str | Path, quiet: bool) -> Path:
-    """The local checkpoint of `weights`: a hub repo id downloaded and converted once (its
-    progress said unless quiet), a local path as it is."""
+    """The local checkpoint of `weights`: a bundled model's folder ("rvggt-small",
+    `rvggt_jax.weights.pretrained.BUNDLED`), a hub repo id downloaded and converted once
+    (its progress said unless quiet), a local path as it is."""
     from rvggt_jax.weights.hub import HubError, resolve_checkpoint
+    from rvggt_jax.weights.pretrained import BUNDLED, bundled_path
 
+    if str(weights) in BUNDLED:
+        try:
+            return bundled_path(str(weights))
+        except FileNotFoundError as e:
+            raise CLIError(str(e)) from None
     try:
         return resolve_checkpoint(weights, progress=not quiet, say=lambda m: say(quiet, m))
     except HubError as e:
         raise CLIError(str(e)) from None
+
+
+def trained_width(local_weights: str | Path) -> int | None:
+    """The network size (its longer side) a checkpoint folder's config.json says it was
+    trained at ("train_image_size": [H, W]), or None."""
+    import json
+
+    try:
+        cfg = json.loads((Path(local_weights) / "config.json").read_text())
+        size = cfg.get("train_image_size")
+        return int(max(size)) if size else None
+    except (OSError, ValueError, TypeError, AttributeError):
+        return None
 
 
 def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None, with_track: bool = False):

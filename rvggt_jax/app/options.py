@@ -66,6 +66,10 @@ class ReconstructOptions:
     Inputs:
       mode: "crop" (width 518, height centre-cropped to <= 518) or "pad" (longest side
         518, white-padded to square).
+      size: the network size in place of 518 (crop: the width; pad: the longest side), a
+        multiple of 14; None: the size the checkpoint was trained at when its config.json
+        records one ("train_image_size": the bundled rvggt-small's 84 x 112 gives 112),
+        else 518.
       max_frames: use at most this many images (or video frames), evenly spaced; None: all.
       every / fps: a video's frames to keep, every N-th or F per second (at most one of
         them; neither: 1 per second). Refused for a folder of images.
@@ -116,6 +120,7 @@ class ReconstructOptions:
     """
 
     mode: str = "crop"
+    size: int | None = None
     max_frames: int | None = None
     every: int | None = None
     fps: float | None = None
@@ -152,6 +157,9 @@ class ReconstructOptions:
             parse_threshold(self.conf_threshold)
         except ValueError as e:
             raise CLIError(str(e)) from None
+        if self.size is not None and (isinstance(self.size, bool) or not isinstance(self.size, int)
+                                      or self.size < 14 or self.size % 14):
+            raise CLIError(f"--size must be a positive multiple of 14 (the patch size); got {self.size}")
         if self.max_frames is not None and self.max_frames < 1:
             raise CLIError(f"--max-frames must be at least 1; got {self.max_frames}")
         if self.preset is not None:

@@ -4,12 +4,24 @@ on localhost with viser (what upstream's own demo uses).
 It reads what `rvggt reconstruct` wrote: points.ply (with its per-point `confidence`
 and `frame`), cameras.json and thumbnails/. The scene: the point cloud under `/points`,
 one camera frustum per image under `/cameras/frame_000`, `/cameras/frame_001`, ...
-(showing the image), in the first camera's OpenCV frame with -y up. The panel: a
-confidence slider (keep points at or above a percentile of the stored points'
-confidences), a frame selector (all frames, or one frame's points with its frustum
-highlighted) and the point size. At most `MAX_SHOWN` points are sent to the browser.
-When the folder (or its diagnostics/ subfolder) holds what `rvggt analyze` wrote, its
-images (rank profile, saliency, K/V coverage, merged groups) are shown in a panel folder.
+(showing the image), in the first camera's OpenCV frame with -y up. The panel:
+- a confidence slider (keep points at or above a percentile of the shown points'
+  confidences), a frame selector (all frames, or one frame's points with its frustum
+  highlighted) and the point size;
+- a background filter: hide near-black and/or near-white points (upstream demo_viser's
+  "filter black / white background"), composing with the slider and the frame;
+- "points from: depth | point map": with the folder's predictions.npz (`rvggt
+  reconstruct --save-raw`), the cloud of the other point source than the run's, rebuilt
+  from the raw predictions (the run's own source shows points.ply as written); disabled,
+  with a note naming --save-raw, without one;
+- with `--weights`, an upload form (upstream demo_gradio's): images (one by one, or a
+  .zip of them) or a video uploaded in the page are reconstructed on the server by
+  `reconstruct_folder` into a new folder of a working folder, with the stages shown in
+  the page, and the result is shown in place of the current one
+  (`rvggt_jax.app.viewer_upload.UploadForm`).
+At most `MAX_SHOWN` points are sent to the browser. When the folder (or its
+diagnostics/ subfolder) holds what `rvggt analyze` wrote, its images (rank profile,
+saliency, K/V coverage, merged groups) are shown in a panel folder.
 """
 
 from __future__ import annotations
@@ -18,21 +30,36 @@ import dataclasses
 import json
 import os
 import threading
+import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAX_SHOWN", "Reconstruction", "Viewer", "diagnostics_images", "load_reconstruction", "serve"]
+__all__ = ["MAX_SHOWN", "Reconstruction", "Viewer", "background_mask", "diagnostics_images", "load_reconstruction",
+           "points_from_predictions", "serve", "start"]
 
 MAX_SHOWN = 1_000_000  # points sent to the browser (a random subset beyond that)
 ALL_FRAMES = "all frames"
+# "points from" labels -> `rvggt reconstruct --points` values (cameras.json's "points_from")
+POINT_SOURCES = {"depth": "depth", "point map": "pointmap"}
+# Background filter, upstream demo_viser's thresholds: near black is R + G + B < 16 (masked
+# pixels are exactly 0 in the network input, and JPEG noise around black stays a few levels
+# per channel), near white is every channel > 240 (--mode pad pads with pure white; JPEG
+# ringing at the padding's edge stays above ~245). Both are tight enough to keep dark and
+# bright scene surfaces, which have some colour or texture.
+BLACK_SUM_BELOW = 16
+WHITE_ALL_ABOVE = 240
 
 
 @dataclasses.dataclass
 class Reconstruction:
     """What the viewer shows. points [N, 3], colors [N, 3] uint8, confidence [N],
     frame [N] (index into `names`; -1 unknown), extrinsic [S, 3, 4] world-to-camera,
-    intrinsic [S, 3, 3], sizes [S] (W, H), thumbnails [S] (uint8 [h, w, 3] or None)."""
+    intrinsic [S, 3, 3], sizes [S] (W, H), thumbnails [S] (uint8 [h, w, 3] or None).
+    points_from: the run's point source ("depth" / "pointmap", cameras.json's; "depth"
+    when it does not say); conf_threshold: the run's --conf-threshold as written there
+    (None when it does not say)."""
 
     names: list[str]
     points: np.ndarray
@@ -43,6 +70,8 @@ class Reconstruction:
     intrinsic: np.ndarray
     sizes: list[tuple[int, int]]
     thumbnails: list[np.ndarray | None]
+    points_from: str = "depth"
+    conf_threshold: str | None = None
 
 
 class ViewerError(ValueError):
@@ -61,7 +90,8 @@ def load_reconstruction(out_dir: str | os.PathLike, max_points: int = MAX_SHOWN,
     if not out.is_dir() or missing:
         raise ViewerError(f"{out} is not an rvggt reconstruction folder (no {' / '.join(missing) or 'folder'}); "
                           f"make one with `rvggt reconstruct ... --out {out}`")
-    frames = json.loads((out / "cameras.json").read_text())["frames"]
+    doc = json.loads((out / "cameras.json").read_text())
+    frames = doc["frames"]
     p = read_ply_properties(out / "points.ply")
     pts = np.stack([p["x"], p["y"], p["z"]], 1).astype(np.float32)
     cols = np.stack([p["red"], p["green"], p["blue"]], 1).astype(np.uint8)
@@ -79,11 +109,26 @@ def load_reconstruction(out_dir: str | os.PathLike, max_points: int = MAX_SHOWN,
                 thumbs.append(np.asarray(im.convert("RGB")))
         else:
             thumbs.append(None)
+    threshold = doc.get("conf_threshold")
     return Reconstruction(
         names=names, points=pts, colors=cols, confidence=conf, frame=frame,
         extrinsic=np.array([f["extrinsic"] for f in frames], np.float64),
         intrinsic=np.array([f["intrinsic"] for f in frames], np.float64),
-        sizes=[(int(f["width"]), int(f["height"])) for f in frames], thumbnails=thumbs)
+        sizes=[(int(f["width"]), int(f["height"])) for f in frames], thumbnails=thumbs,
+        points_from="pointmap" if doc.get("points_from") == "pointmap" else "depth",
+        conf_threshold=None if threshold is None else str(threshold))
+
+
+def background_mask(colors: np.ndarray, black: bool, white: bool) -> np.ndarray:
+    """[N] bool: the points of colors [N, 3] uint8 that the background filter hides
+    (near black when `black`, near white when `white`; thresholds above)."""
+    c = np.asarray(colors)
+    hide = np.zeros(len(c), bool)
+    if black:
+        hide |= c.astype(np.int32).sum(1) < BLACK_SUM_BELOW
+    if white:
+        hide |= (c > WHITE_ALL_ABOVE).all(1)
+    return hide
 
 
 def _frustum_scale(rec: Reconstruction) -> float:
@@ -98,54 +143,184 @@ def _frustum_scale(rec: Reconstruction) -> float:
     return 0.1 * (span if span > 1e-9 else 1.0)
 
 
+def _md(text: str) -> str:
+    """`text` for a markdown element, its markup characters escaped (paths and error
+    messages hold `_`, `*`, `<`, ...)."""
+    out = str(text)
+    for ch in "\\`*_{}[]()<>#+!|~":
+        out = out.replace(ch, "\\" + ch)
+    return out
+
+
+def _code(text) -> str:
+    """`text` as a markdown code span (where escapes would show as written)."""
+    return "`" + str(text).replace("`", "'") + "`"
+
+
+def _predictions_problem(path: Path, names: list[str]) -> str | None:
+    """Why the "points from" switch cannot use the predictions.npz at `path` for frames
+    `names` (None: it can). Reads only the file's index and its image names: the arrays
+    are read when the switch is used."""
+    from rvggt_jax.io.raw import REQUIRED_KEYS
+
+    if not path.is_file():
+        return f"needs {path.name} in the folder: reconstruct with --save-raw"
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            keys = set(npz.files)
+            missing = [k for k in REQUIRED_KEYS if k not in keys]
+            if missing:
+                return f"{path.name} lacks {', '.join(missing)}"
+            if not {"world_points", "world_points_conf"} <= keys:
+                return f"{path.name} has no point map (the model has no point head)"
+            stored = [str(n) for n in npz["image_names"]]
+    except (OSError, ValueError, AttributeError, EOFError, zipfile.BadZipFile) as e:
+        from rvggt_jax.app.messages import one_line
+
+        return f"cannot read {path.name} as .npz ({one_line(e, 200)})"
+    if stored != list(names):
+        return f"{path.name} is of other images than cameras.json"
+    return None
+
+
+def points_from_predictions(arrays: dict, source: str, conf_threshold: str | None, max_points: int = MAX_SHOWN):
+    """The cloud of predictions.npz `arrays` (`rvggt_jax.io.raw.load_predictions`) for
+    `source` "depth" (the depth maps unprojected with the predicted cameras, their
+    depth_conf; pixels with depth <= 0 dropped) or "pointmap" (the point head's
+    world_points, their world_points_conf), the points chosen as the run chose its own
+    (`conf_threshold`, e.g. "50%"; None keeps all; at most `max_points`) ->
+    (points [N, 3] float32, colors [N, 3] uint8, confidence [N] float32, frame [N] int64,
+    the absolute threshold used)."""
+    from rvggt_jax.app.pipeline import parse_threshold, select_points
+    from rvggt_jax.geometry import unproject_depth_map_to_point_map
+
+    images = np.asarray(arrays["images"], np.float32)
+    s, _, h, w = images.shape
+    colors = (np.clip(images.transpose(0, 2, 3, 1), 0, 1) * 255 + 0.5).astype(np.uint8)
+    if source == "depth":
+        depth = np.asarray(arrays["depth"], np.float32)[..., 0]
+        pts = unproject_depth_map_to_point_map(depth, arrays["extrinsic"], arrays["intrinsic"])
+        conf, valid = np.asarray(arrays["depth_conf"], np.float32), depth > 1e-8
+    elif source == "pointmap":
+        pts, conf, valid = arrays["world_points"], np.asarray(arrays["world_points_conf"], np.float32), None
+    else:
+        raise ValueError(f"unknown point source {source!r}; use depth or pointmap")
+    threshold = "0%" if conf_threshold is None else conf_threshold
+    try:
+        parse_threshold(threshold)
+    except ValueError:  # a cameras.json written by hand: keep every point
+        threshold = "0%"
+    points, cols, abs_thr, idx = select_points(pts, conf, colors, valid, threshold, max_points, return_index=True)
+    return points, cols, conf.reshape(-1)[idx].astype(np.float32), (idx // (h * w)).astype(np.int64), abs_thr
+
+
 class Viewer:
-    """The scene and panel of one reconstruction on a `viser.ViserServer`."""
+    """The scene and panel of one reconstruction on a `viser.ViserServer`; `show` puts
+    another reconstruction in its place (the upload form's results)."""
 
-    def __init__(self, server, rec: Reconstruction):
-        from rvggt_jax.io.colmap import colmap_qvec
-
-        self.server, self.rec = server, rec
+    def __init__(self, server, rec: Reconstruction, folder: str | os.PathLike | None = None):
+        self.server = server
         self.diagnostics: list = []  # GUI images of `rvggt analyze` (`add_diagnostics_panel`)
+        self._diagnostics_folder = None
+        self.uploads = None  # the upload form (`start` with weights: viewer_upload.UploadForm)
         server.scene.set_up_direction("-y")  # OpenCV world: y points down
-        self.scale = _frustum_scale(rec)
         gui = server.gui
         self.conf_slider = gui.add_slider("confidence percentile", min=0, max=99, step=1, initial_value=0,
                                           hint="show points at or above this percentile of confidence")
         self.frame_select = gui.add_dropdown("frame", [ALL_FRAMES, *rec.names], initial_value=ALL_FRAMES)
-        self.point_size = gui.add_slider("point size", min=0.001, max=0.05, step=0.001,
-                                         initial_value=round(max(0.001, min(0.05, self.scale * 0.02)), 3))
-        self.frustums = []
-        for i, name in enumerate(rec.names):
-            e = rec.extrinsic[i]
-            r_c2w = e[:, :3].T
-            center = -r_c2w @ e[:, 3]
-            w, h = rec.sizes[i]
-            fy = rec.intrinsic[i][1, 1]
-            fov = 2 * np.arctan2(h / 2, fy) if fy > 0 else np.deg2rad(60)
-            self.frustums.append(server.scene.add_camera_frustum(
-                f"/cameras/frame_{i:03d}", fov=float(fov), aspect=w / h, scale=self.scale,
-                image=rec.thumbnails[i], wxyz=colmap_qvec(r_c2w), position=center, color=self._color(i, False)))
-        self._place_initial_camera()
+        self.point_size = gui.add_slider("point size", min=0.001, max=0.05, step=0.001, initial_value=0.01)
+        self.hide_black = gui.add_checkbox("hide black background", False,
+                                           hint=f"hide near-black points (R + G + B < {BLACK_SUM_BELOW}: masked "
+                                                f"pixels, black borders)")
+        self.hide_white = gui.add_checkbox("hide white background", False,
+                                           hint=f"hide near-white points (R, G, B > {WHITE_ALL_ABOVE}: the padding "
+                                                f"of --mode pad, white backdrops)")
+        self.source_select = gui.add_dropdown(
+            "points from", tuple(POINT_SOURCES), initial_value="depth",
+            hint="the depth maps unprojected with the predicted cameras, or the point head's map: the run's own "
+                 "source is points.ply as written, the other is rebuilt from predictions.npz")
+        self.source_note = gui.add_markdown("")
+        self.frustums: list = []
         self.cloud = None
-        self._lock = threading.Lock()
-        self.update()
-        self.conf_slider.on_update(lambda _: self.update())
-        self.frame_select.on_update(lambda _: self.update())
-        self.point_size.on_update(lambda _: self.update())
+        self._lock = threading.RLock()
+        self._quiet = 0  # > 0 while `show` sets the controls (their callbacks wait for its one update)
+        self.show(rec, folder)
+        for control in (self.conf_slider, self.frame_select, self.point_size, self.hide_black, self.hide_white):
+            control.on_update(lambda _: self._changed())
+        self.source_select.on_update(lambda _: self._source_changed())
+
+    # -- the reconstruction shown ---------------------------------------------------------
+
+    def show(self, rec: Reconstruction, folder: str | os.PathLike | None = None) -> None:
+        """Show `rec` (read from `folder`, None: from no folder: no source switch, no
+        diagnostics) in place of what is shown: its frustums, frames, points, the
+        browsers' view; the filters stay as set."""
+        from rvggt_jax.io.colmap import colmap_qvec
+        from rvggt_jax.io.raw import RAW_NAME
+
+        with self._lock:
+            self._quiet += 1
+            try:
+                self.rec = self.ply_rec = rec
+                self.folder = None if folder is None else Path(folder)
+                self._built: dict[str, tuple] = {}  # point source -> (points, colors, confidence, frame, note)
+                self.scale = _frustum_scale(rec)
+                for h in self.frustums:
+                    h.remove()
+                self.frustums = []
+                for i in range(len(rec.names)):
+                    e = rec.extrinsic[i]
+                    r_c2w = e[:, :3].T
+                    w, h = rec.sizes[i]
+                    fy = rec.intrinsic[i][1, 1]
+                    fov = 2 * np.arctan2(h / 2, fy) if fy > 0 else np.deg2rad(60)
+                    self.frustums.append(self.server.scene.add_camera_frustum(
+                        f"/cameras/frame_{i:03d}", fov=float(fov), aspect=w / h, scale=self.scale,
+                        image=rec.thumbnails[i], wxyz=colmap_qvec(r_c2w), position=-r_c2w @ e[:, 3],
+                        color=self._color(i, False)))
+                self.frame_select.options = [ALL_FRAMES, *rec.names]
+                self.frame_select.value = ALL_FRAMES
+                self.point_size.value = round(max(0.001, min(0.05, self.scale * 0.02)), 3)
+                run_label = next(k for k, v in POINT_SOURCES.items() if v == rec.points_from)
+                self.source_select.value = run_label
+                problem = ("needs a reconstruction folder" if self.folder is None else
+                           _predictions_problem(self.folder / RAW_NAME, rec.names))
+                self.source_select.disabled = problem is not None
+                self.source_note.content = (f"*points from*: {_md(problem)}" if problem else
+                                            f"shown: points.ply as written ({run_label})")
+                self._show_diagnostics()
+                self._place_initial_camera()
+            finally:
+                self._quiet -= 1
+            self.update()
+
+    def _show_diagnostics(self) -> None:
+        if self._diagnostics_folder is not None:
+            self._diagnostics_folder.remove()
+        self._diagnostics_folder, self.diagnostics = (None, []) if self.folder is None else \
+            _diagnostics_panel(self.server, self.folder)
 
     def _place_initial_camera(self) -> None:
         """Open the browser's view behind and above the first camera, looking at the
-        scene's centre (viser's default looks at the origin from far off)."""
+        scene's centre (viser's default looks at the origin from far off); the views of
+        browsers already connected (a new result) go there too."""
         rec = self.rec
         e = rec.extrinsic[0]
         r_c2w = e[:, :3].T
         center = -r_c2w @ e[:, 3]
         target = np.median(rec.points, axis=0) if len(rec.points) else center + r_c2w[:, 2]
         back = 2.0 * max(float(np.linalg.norm(target - center)), 10 * self.scale)
+        position, up = center - r_c2w[:, 2] * back * 0.5 - r_c2w[:, 1] * back * 0.3, -r_c2w[:, 1]
         cam = self.server.initial_camera
-        cam.position = tuple(center - r_c2w[:, 2] * back * 0.5 - r_c2w[:, 1] * back * 0.3)
-        cam.look_at = tuple(target)
-        cam.up = tuple(-r_c2w[:, 1])
+        cam.position, cam.look_at, cam.up = tuple(position), tuple(target), tuple(up)
+        for client in self.server.get_clients().values():
+            try:
+                with client.atomic():
+                    client.camera.up_direction = up
+                    client.camera.position = position
+                    client.camera.look_at = target
+            except AssertionError:  # viser has no view from this browser yet: it opens at the initial camera
+                pass
 
     def _color(self, i: int, selected: bool) -> tuple[int, int, int]:
         if selected:
@@ -153,16 +328,69 @@ class Viewer:
         f = i / max(len(self.rec.names) - 1, 1)
         return (int(255 * f), int(200 * (1 - f)), 40)
 
+    # -- the point source -----------------------------------------------------------------
+
+    def _source_changed(self) -> None:
+        if self._quiet:
+            return
+        with self._lock:
+            label = self.source_select.value
+            source = POINT_SOURCES[label]
+            if source == self.ply_rec.points_from:
+                pts, cols, conf, frame = (self.ply_rec.points, self.ply_rec.colors, self.ply_rec.confidence,
+                                          self.ply_rec.frame)
+                note = f"shown: points.ply as written ({label})"
+            else:
+                try:
+                    pts, cols, conf, frame, note = self._build(source, label)
+                except (ValueError, OSError) as e:  # a damaged or removed predictions.npz: said in the panel
+                    from rvggt_jax.app.messages import one_line
+
+                    self.source_note.content = f"*points from*: {_md(one_line(e, 300))}"
+                    self._quiet += 1
+                    try:
+                        self.source_select.value = next(k for k, v in POINT_SOURCES.items()
+                                                        if v == self.ply_rec.points_from)
+                    finally:
+                        self._quiet -= 1
+                    self.rec = self.ply_rec
+                    self.update()
+                    return
+            self.rec = dataclasses.replace(self.ply_rec, points=pts, colors=cols, confidence=conf, frame=frame)
+            self.source_note.content = note
+            self.update()
+
+    def _build(self, source: str, label: str) -> tuple:
+        """(points, colors, confidence, frame, note) of `source` from the folder's
+        predictions.npz, built once per folder; ValueError (`RawPredictionsError`) for a
+        damaged file, OSError for one gone."""
+        from rvggt_jax.io.raw import RAW_NAME, load_predictions
+
+        if source not in self._built:
+            arrays = load_predictions(self.folder / RAW_NAME)
+            threshold = self.ply_rec.conf_threshold
+            pts, cols, conf, frame, abs_thr = points_from_predictions(arrays, source, threshold)
+            kept = f"confidence >= {abs_thr:.4g}" + (f" (the run's {threshold})" if threshold else "")
+            self._built[source] = (pts, cols, conf, frame,
+                                   f"shown: {len(pts)} points rebuilt from {RAW_NAME} ({label}, {_md(kept)})")
+        return self._built[source]
+
+    # -- what is shown --------------------------------------------------------------------
+
     def visible_mask(self) -> np.ndarray:
         """[N] bool: the points the current panel settings show."""
         rec = self.rec
-        mask = np.ones(len(rec.points), bool)
+        mask = ~background_mask(rec.colors, self.hide_black.value, self.hide_white.value)
         if len(rec.points) and self.conf_slider.value > 0:
             mask &= rec.confidence >= np.percentile(rec.confidence, self.conf_slider.value)
         sel = self.frame_select.value
         if sel != ALL_FRAMES:
             mask &= rec.frame == rec.names.index(sel)
         return mask
+
+    def _changed(self) -> None:
+        if not self._quiet:
+            self.update()
 
     def update(self) -> None:
         """Re-send the point cloud and frustum colours for the panel's settings."""
@@ -193,17 +421,23 @@ def diagnostics_images(out_dir: str | os.PathLike) -> list[Path]:
 def add_diagnostics_panel(server, out_dir: str | os.PathLike) -> list:
     """A collapsed panel folder with the analyze images of `out_dir` (`diagnostics_images`);
     returns their GUI handles ([] and no folder when there are none)."""
+    return _diagnostics_panel(server, out_dir)[1]
+
+
+def _diagnostics_panel(server, out_dir: str | os.PathLike) -> tuple:
+    """`add_diagnostics_panel` -> (the folder's handle or None, the images' handles). The
+    folder goes last in the panel, also when made after the others (a new result)."""
     from PIL import Image
 
     paths = diagnostics_images(out_dir)
     if not paths:
-        return []
+        return None, []
     handles = []
-    with server.gui.add_folder("diagnostics (rvggt analyze)", expand_by_default=False):
+    with server.gui.add_folder("diagnostics (rvggt analyze)", expand_by_default=False, order=1e9) as folder:
         for p in paths:
             with Image.open(p) as im:
                 handles.append(server.gui.add_image(np.asarray(im.convert("RGB")), label=p.stem, format="png"))
-    return handles
+    return folder, handles
 
 
 def check_bindable(host: str, port: int) -> None:
@@ -225,37 +459,62 @@ def check_bindable(host: str, port: int) -> None:
         raise ViewerError(f"cannot serve on {host}:{port}: {e.strerror or e}{hint}; choose another --port") from None
 
 
-def start(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1", verbose: bool = False):
+def start(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1", verbose: bool = False,
+          weights: str | os.PathLike | None = None, work_dir: str | os.PathLike | None = None, options=None):
     """Start a viser server showing `out_dir` -> (server, Viewer); returns at once (the
-    server runs in its own threads; `server.stop()` ends it)."""
+    server runs in its own threads; `server.stop()` ends it). With `weights`, the page
+    also has the upload form (`UploadForm`: runs go to new folders of `work_dir`, default
+    `DEFAULT_WORK_DIR`, with `options`); a local checkpoint that is not there is said now."""
     import viser
 
     rec = load_reconstruction(out_dir)
+    if weights is not None:
+        from rvggt_jax.app.commands import _check_weights
+        from rvggt_jax.app.messages import CLIError
+
+        try:
+            _check_weights(weights)  # a typo is said before the server starts, not after an upload
+        except CLIError as e:
+            raise ViewerError(f"--weights: {e}") from None
+    elif work_dir is not None:
+        raise ViewerError("--work-dir applies with --weights (the upload form)")
     check_bindable(host, port)
     try:
         server = viser.ViserServer(host=host, port=port, verbose=verbose)
     except OSError as e:
         raise ViewerError(f"cannot serve on {host}:{port}: {e.strerror or e} (choose another --port)") from None
-    viewer = Viewer(server, rec)
-    viewer.diagnostics = add_diagnostics_panel(server, out_dir)
+    viewer = Viewer(server, rec, out_dir)
+    if weights is not None:
+        from rvggt_jax.app.viewer_upload import DEFAULT_WORK_DIR, UploadForm
+
+        viewer.uploads = UploadForm(viewer, weights, DEFAULT_WORK_DIR if work_dir is None else work_dir, options)
     return server, viewer
 
 
-def serve(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1") -> None:
-    """`rvggt view`: serve until Ctrl-C."""
-    import time
-
+def serve(out_dir: str | os.PathLike, port: int = 8080, host: str = "127.0.0.1",
+          weights: str | os.PathLike | None = None, work_dir: str | os.PathLike | None = None) -> None:
+    """`rvggt view`: serve until Ctrl-C (`start`'s arguments)."""
     from rvggt_jax.app.messages import CLIError
 
     try:
-        server, viewer = start(out_dir, port, host)
+        server, viewer = start(out_dir, port, host, weights=weights, work_dir=work_dir)
     except ViewerError as e:
         raise CLIError(str(e)) from None
     shown = "localhost" if host in ("127.0.0.1", "localhost", "::1") else host
     print(f"rvggt view: {len(viewer.rec.names)} cameras, {len(viewer.rec.points)} points from {out_dir}\n"
           f"open http://{shown}:{server.get_port()} in a browser (Ctrl-C to stop)", flush=True)
+    if viewer.uploads is not None:
+        print(f"upload form: reconstructions with {weights} go to new folders of {viewer.uploads.work_dir}",
+              flush=True)
     try:
         while True:
             time.sleep(3600)
+    except KeyboardInterrupt:
+        if viewer.uploads is not None and viewer.uploads.busy:
+            from rvggt_jax.app.model_runner import ABANDONED_FORWARD
+
+            # a forward cannot be cancelled: `rvggt`'s main leaves at once instead of waiting for it
+            ABANDONED_FORWARD.set()
+        raise
     finally:
         server.stop()

@@ -1,9 +1,13 @@
-"""Regenerate the bundled demo images (`images/view_*.jpg`).
+"""Regenerate the bundled example data.
 
-A tiny ray-cast scene, numpy only: a checkered, noise-textured ground plane, two
-spheres and a box, under a sky gradient, seen by cameras on an arc around the scene.
-The images are small on purpose (the package ships them); they exercise the pipeline,
-not the model's accuracy.
+`scene/`: the demo's scene (`rvggt demo`), a held-out procedural room
+(`rvggt_jax.synthetic.make_scene(frames=8, height=84, width=112, seed=DEMO_SEED)`, a seed
+the shipped rvggt-small never trained on) in the evaluation's "folder" format:
+images/frame_XXXX.png, cameras.json (exact cameras) and depth/frame_XXXX.npy.
+
+`images/view_*.jpg`: three small views of another ray-cast scene (a checkered ground
+plane, two spheres and a box under a sky gradient) that the tests run the pipeline on
+with the tiny random-weight model; they exercise the pipeline, not a model's accuracy.
 
     python -m rvggt_jax.examples_data.generate
 """
@@ -18,6 +22,8 @@ from PIL import Image
 WIDTH, HEIGHT, FOCAL = 160, 120, 150.0
 N_VIEWS = 3
 HERE = Path(__file__).resolve().parent
+DEMO_SEED = 7  # in rvggt_jax.synthetic.HELD_OUT_SEEDS
+DEMO_FRAMES, DEMO_HW = 8, (84, 112)
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -100,7 +106,23 @@ def render(eye: np.ndarray, target: np.ndarray, rng_table: np.ndarray) -> np.nda
     return (np.clip(color, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
+def write_demo_scene(root: Path = HERE) -> Path:
+    """ROOT/scene: the demo's held-out scene with its ground truth (no points.ply)."""
+    import shutil
+
+    from rvggt_jax.synthetic import HELD_OUT_SEEDS, make_scene, write_scene
+
+    assert DEMO_SEED in HELD_OUT_SEEDS
+    scene = make_scene(frames=DEMO_FRAMES, height=DEMO_HW[0], width=DEMO_HW[1], seed=DEMO_SEED, name="scene")
+    if (root / "scene").exists():
+        shutil.rmtree(root / "scene")
+    d = write_scene(scene, "folder", root)
+    (d / "points.ply").unlink()
+    return d
+
+
 def main() -> None:
+    write_demo_scene()
     rng = np.random.default_rng(0)
     table = rng.random((64, 64))
     out = HERE / "images"

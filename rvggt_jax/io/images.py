@@ -98,19 +98,26 @@ class ImageInfo:
         return m
 
 
-def preprocessed_size(width: int, height: int, mode: str = "crop") -> tuple[int, int]:
+def preprocessed_size(width: int, height: int, mode: str = "crop", target: int = TARGET_SIZE) -> tuple[int, int]:
     """`(new_width, new_height)` upstream resizes a `width x height` image to (before
-    cropping / padding). Python's `round` (half to even) as upstream."""
+    cropping / padding) for a network size `target` (upstream's 518). Python's `round`
+    (half to even) as upstream."""
     _check_mode(mode)
+    _check_target(target)
     if mode == "pad" and height > width:
-        new_height = TARGET_SIZE
+        new_height = target
         new_width = round(width * (new_height / height) / PATCH) * PATCH
     else:
-        new_width = TARGET_SIZE
+        new_width = target
         new_height = round(height * (new_width / width) / PATCH) * PATCH
     if new_width <= 0 or new_height <= 0:
-        raise ValueError(f"image of {width}x{height} pixels is too thin to resize to {TARGET_SIZE} pixels")
+        raise ValueError(f"image of {width}x{height} pixels is too thin to resize to {target} pixels")
     return new_width, new_height
+
+
+def _check_target(target: int) -> None:
+    if isinstance(target, bool) or not isinstance(target, int) or target < PATCH or target % PATCH:
+        raise ValueError(f"the network size must be a positive multiple of {PATCH}; got {target!r}")
 
 
 def _check_mode(mode: str) -> None:
@@ -180,6 +187,7 @@ def load_images_with_info(
     exif_orientation: bool = True,
     on_error: str = "raise",
     pad_to: tuple[int, int] | None = None,
+    target: int = TARGET_SIZE,
 ) -> tuple[np.ndarray, list[ImageInfo]]:
     """Load and preprocess images as upstream's `load_and_preprocess_images`.
 
@@ -196,6 +204,8 @@ def load_images_with_info(
         `path` with `paths` to see which were skipped).
       pad_to: (H, W): centre-pad with white to at least this size (a long run's
         chunks all take their sequence's `network_shape`).
+      target: the network size in place of upstream's 518 (a model trained at another
+        size: `ReconstructOptions.size`).
 
     Returns:
       images `[S, 3, H, W]` float32 in [0, 1]; images of different sizes are
@@ -210,6 +220,7 @@ def load_images_with_info(
     if len(paths) == 0:
         raise ValueError("at least 1 image is required")
     _check_mode(mode)
+    _check_target(target)
     if on_error not in ("raise", "skip"):
         raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
 
@@ -221,7 +232,7 @@ def load_images_with_info(
             img = _open_rgb(path, exif_orientation)
             width, height = img.size
             try:
-                new_width, new_height = preprocessed_size(width, height, mode)
+                new_width, new_height = preprocessed_size(width, height, mode, target)
             except ValueError as e:
                 raise ImageLoadError(f"cannot use image {path}: {e}") from None
         except ImageLoadError:
@@ -233,14 +244,14 @@ def load_images_with_info(
         arr = np.asarray(img, dtype=np.uint8).transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
         sx, sy = new_width / width, new_height / height
         ox = oy = 0.0
-        if mode == "crop" and new_height > TARGET_SIZE:
-            start_y = (new_height - TARGET_SIZE) // 2
-            arr = arr[:, start_y : start_y + TARGET_SIZE, :]
+        if mode == "crop" and new_height > target:
+            start_y = (new_height - target) // 2
+            arr = arr[:, start_y : start_y + target, :]
             oy -= start_y
         content = (arr.shape[2], arr.shape[1])
         if mode == "pad":
-            h_pad = TARGET_SIZE - arr.shape[1]
-            w_pad = TARGET_SIZE - arr.shape[2]
+            h_pad = target - arr.shape[1]
+            w_pad = target - arr.shape[2]
             if h_pad > 0 or w_pad > 0:
                 top, left = h_pad // 2, w_pad // 2
                 arr = _pad_white(arr, top, h_pad - top, left, w_pad - left)
@@ -302,7 +313,7 @@ def upright_size(path: str | os.PathLike, exif_orientation: bool = True) -> tupl
 
 
 def network_shape(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exif_orientation: bool = True,
-                  on_error: str = "raise") -> tuple[tuple[int, int], list[str]]:
+                  on_error: str = "raise", target: int = TARGET_SIZE) -> tuple[tuple[int, int], list[str]]:
     """`((H, W), unreadable)`: the network input size `load_images_with_info` gives all of
     `paths` together, from the files' headers alone (no decoding: fast for thousands of
     frames), and the paths whose header cannot be read (skipped with on_error="skip";
@@ -313,16 +324,16 @@ def network_shape(paths: Sequence[str | os.PathLike], mode: str = "crop", *, exi
     for path in map(os.fspath, paths):
         try:
             w, h = upright_size(path, exif_orientation)
-            nw, nh = preprocessed_size(w, h, mode)
+            nw, nh = preprocessed_size(w, h, mode, target)
         except (OSError, SyntaxError, ValueError, UnidentifiedImageError, Image.DecompressionBombError) as e:
             if on_error == "skip":
                 bad.append(path)
                 continue
             raise ImageLoadError(f"cannot read image {path}: {e}") from None
         if mode == "pad":
-            nw, nh = TARGET_SIZE, TARGET_SIZE
+            nw, nh = target, target
         else:
-            nh = min(nh, TARGET_SIZE)
+            nh = min(nh, target)
         height, width = max(height, nh), max(width, nw)
     return (height, width), bad
 

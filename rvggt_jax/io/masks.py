@@ -64,7 +64,7 @@ def _content_size(info: ImageInfo) -> tuple[int, int]:
 
 
 def load_masks(mask_paths: Sequence[str | os.PathLike], infos: Sequence[ImageInfo], image_hw: tuple[int, int],
-               mode: str = "crop", *, exif_orientation: bool = True) -> np.ndarray:
+               mode: str = "crop", *, exif_orientation: bool = True, target: int = 518) -> np.ndarray:
     """Masks [S, H, W] bool (True = keep) on the network input of the images `infos`
     describe (as `load_images_with_info` returned them, batch H x W = `image_hw`).
     Each mask is preprocessed as its image; a mask that does not come out at its image's
@@ -74,7 +74,7 @@ def load_masks(mask_paths: Sequence[str | os.PathLike], infos: Sequence[ImageInf
     try:
         # padded to the images' batch size: a chunk of a long run pads to its sequence's
         masks, mask_infos = load_images_with_info(mask_paths, mode, exif_orientation=exif_orientation,
-                                                  pad_to=tuple(image_hw))
+                                                  pad_to=tuple(image_hw), target=target)
     except ImageLoadError as e:
         raise MaskError(f"mask: {e}") from None
     for path, m, info in zip(mask_paths, mask_infos, infos):

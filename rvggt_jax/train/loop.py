@@ -196,6 +196,21 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     tc = TrainConfig(learning_rate=opts.learning_rate, warmup_steps=warmup, total_steps=opts.steps,
                      train=opts.train, accumulate=opts.accumulate).validate()
 
+    def make(i: int) -> dict:
+        return data_mod.step_batch(usable, i, opts.seed, opts.batch, (lo, hi), opts.size, buckets)
+
+    return run_training(out, params, config, tc, opts, make, buckets,
+                        f"{len(usable)} {fmt} scenes in {data_dir}", log=log, progress=progress)
+
+
+def run_training(out: Path, params: dict, config: VGGTConfig, tc: TrainConfig, opts: FinetuneOptions,
+                 make: Callable[[int], dict], buckets: Sequence[int], source: str,
+                 log: Callable[[str], Any] = print, progress: bool = True, desc: str = "finetune") -> Path:
+    """The training loop behind `finetune` and `rvggt_jax.train.small`: `opts.steps` steps
+    of `tc` on the batches `make(step)` (a function of the step alone), resuming from
+    OUT/state, checkpointing every `opts.save_every` steps, logging to OUT/log.jsonl and
+    OUT/loss.png; OUT/model at the end. `source` describes the data in the log."""
+    lo, hi = min(buckets), max(buckets)
     state = init_state(params, tc)
     saved = latest_step(out)
     if saved is not None:
@@ -208,12 +223,9 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
         if start >= stop:
             return _nothing_to_train(out, state, config, opts, start, log)
         log(f"resuming from step {start} in {out}")
-    fn, state = _train_step(config, tc, layout, state, log)
+    fn, state = _train_step(config, tc, device_layout(opts), state, log)
     step_fn = BucketedStep(fn, opts.batch, buckets, opts.size, log)
-    log(f"{len(usable)} {fmt} scenes in {data_dir}; {lo}..{hi} frames per step in buckets {list(buckets)}")
-
-    def make(i: int) -> dict:
-        return data_mod.step_batch(usable, i, opts.seed, opts.batch, (lo, hi), opts.size, buckets)
+    log(f"{source}; {lo}..{hi} frames per step in buckets {list(buckets)}")
 
     out.mkdir(parents=True, exist_ok=True)
     history = _read_log(out / "log.jsonl", upto=start)
@@ -222,7 +234,7 @@ def finetune(data_dir: str | Path, out: str | Path, params: dict, config: VGGTCo
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=opts.steps, initial=start, unit="step", desc="finetune", dynamic_ncols=True)
+        bar = tqdm(total=opts.steps, initial=start, unit="step", desc=desc, dynamic_ncols=True)
         if log is print:
             log = bar.write
         step_fn.log = log

@@ -16,14 +16,35 @@ from rvggt_jax.config import VGGTConfig
 from rvggt_jax.weights.checkpoint import load_checkpoint
 from rvggt_jax.weights.hub import is_repo_id, resolve_checkpoint
 
-__all__ = ["load_pretrained"]
+__all__ = ["BUNDLED", "bundled_path", "load_pretrained"]
+
+_EXAMPLES = Path(__file__).resolve().parents[1] / "examples_data"
+
+BUNDLED = {
+    # trained here from scratch on procedural scenes (rvggt_jax.train.small; its model card is
+    # rvggt_jax/examples_data/rvggt_small/README.md)
+    "rvggt-small": _EXAMPLES / "rvggt_small",
+    # random weights, upstream's initialisation: the parity fixtures' model
+    "tiny-random": _EXAMPLES / "tiny",
+}
+"""Reserved checkpoint names, resolved to folders shipped in the package (offline)."""
+
+
+def bundled_path(name: str) -> Path:
+    """The folder of a `BUNDLED` name; FileNotFoundError when the install lacks it."""
+    path = BUNDLED[name]
+    if not (path / "config.json").is_file() or not (path / "params").is_dir():
+        raise FileNotFoundError(f"the bundled model {name!r} is missing from this install ({path}: no params/ "
+                                "and config.json); reinstall rvggt-jax")
+    return path
 
 
 def load_pretrained(path: str | Path, *, skip_track: bool = False, device_put: bool = True, progress: bool = False,
                     param_dtype: Any = "float32", verify: bool = False) -> tuple[dict, VGGTConfig]:
     """Load VGGT parameters -> `(params, config)`.
 
-    `path` is a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
+    `path` is a reserved name of `BUNDLED` ("rvggt-small": the small VGGT trained here
+    and shipped in the package; "tiny-random"), a Hugging Face repo id such as `"facebook/VGGT-1B"` (not an existing local
     path: downloaded into the hub cache and converted once to an Orbax copy under
     `~/.cache/rvggt-jax/weights`, `rvggt_jax.weights.hub`; offline the caches are used, and
     `HubError` says what is missing), or a local checkpoint: a folder with
@@ -34,7 +55,9 @@ def load_pretrained(path: str | Path, *, skip_track: bool = False, device_put: b
     (for `config.with_dtype("bfloat16")`), `verify=True` checks a converted copy's arrays
     against their recorded digests on this load (otherwise once per copy).
     """
-    if is_repo_id(path):
+    if isinstance(path, str) and path in BUNDLED:
+        path = bundled_path(path)
+    elif is_repo_id(path):
         path = resolve_checkpoint(path, progress=progress)
     return load_checkpoint(path, skip_track=skip_track, device_put=device_put, progress=progress,
                            param_dtype=param_dtype, verify=verify)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.helpers import DEMO_IMAGES, REPO, TINY
+from tests.helpers import SAMPLE_IMAGES, REPO, TINY
 from tests.helpers.readers import read_colmap_text, read_depth_png, read_ply
 
 
@@ -22,8 +22,8 @@ _CACHE = {}
 
 @pytest.fixture(scope="module", autouse=True)
 def _compile_cache(tmp_path_factory):
-    """The runs of this module share a compilation cache (the demo and the 3-frame
-    reconstruct compile the same program) in pytest's temporary folder."""
+    """The runs of this module share a compilation cache (the reconstructs of the tiny
+    model compile the same programs) in pytest's temporary folder."""
     _CACHE["dir"] = str(tmp_path_factory.mktemp("xla_cache"))
     yield
     _CACHE.pop("dir", None)
@@ -98,20 +98,31 @@ def demo_run(tmp_path_factory):
 
 
 def test_demo_end_to_end(demo_run):
+    """The demo reconstructs the bundled held-out scene with the trained rvggt-small, at
+    its training size, says which model it ran, and its cameras are real: the median
+    relative rotation error against the scene's true cameras is at most half that of
+    predicting every camera as the first."""
+    from rvggt_jax.app.commands import DEMO_SCENE
+
     out, r = demo_run
     assert r.returncode == 0, r.stderr[-3000:]
     assert not [ln for ln in r.stderr.splitlines() if native_startup_log(ln)], r.stderr[-3000:]
-    assert "RANDOM" in r.stdout
-    names = sorted(p.name for p in DEMO_IMAGES.iterdir() if p.suffix == ".jpg")
+    assert "rvggt-small" in r.stdout and "held-out" in r.stdout and "RANDOM" not in r.stdout
+    names = sorted(p.name for p in (DEMO_SCENE / "images").iterdir())
     doc = check_outputs(out, names)
-    assert doc["frames"][0]["width"] == 160 and doc["frames"][0]["height"] == 120  # original pixels
+    assert doc["frames"][0]["width"] == 112 and doc["frames"][0]["height"] == 84  # original pixels
+    assert "network input 112x84" in r.stdout
+    m = re.search(r"rotation error median ([\d.]+) deg \(every camera predicted as the first: ([\d.]+) deg\)",
+                  r.stdout)
+    assert m, r.stdout[-2000:]
+    assert float(m[1]) <= 0.5 * float(m[2]), m[0]
 
 
 def test_reconstruct_options(tmp_path, converted):
     """A converted (Orbax) checkpoint, --max-frames, non-image files skipped, --quiet."""
     src = tmp_path / "imgs"
     src.mkdir()
-    demo = sorted(DEMO_IMAGES.glob("*.jpg"))
+    demo = sorted(SAMPLE_IMAGES.glob("*.jpg"))
     for i, p in enumerate(demo + demo[:1]):
         shutil.copy(p, src / f"frame_{i}.jpg")
     (src / "notes.txt").write_text("not an image")
@@ -142,20 +153,20 @@ def test_missing_folder(tmp_path):
 
 
 def test_corrupt_image(tmp_path):
-    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
+    shutil.copy(sorted(SAMPLE_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
     (tmp_path / "b.png").write_bytes(b"\x89PNG\r\n\x1a\ngarbage")
     assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o"), "b.png")
 
 
 def test_unknown_preset(tmp_path):
-    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
+    shutil.copy(sorted(SAMPLE_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
     line = assert_one_line_error(
         rvggt("reconstruct", tmp_path, "--weights", TINY, "--out", tmp_path / "o", "--preset", "nosuch"), "nosuch")
     assert "dense" in line  # lists the known presets
 
 
 def test_missing_checkpoint(tmp_path):
-    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
+    shutil.copy(sorted(SAMPLE_IMAGES.glob("*.jpg"))[0], tmp_path / "a.jpg")
     assert_one_line_error(rvggt("reconstruct", tmp_path, "--weights", tmp_path / "nockpt", "--out", tmp_path / "o"),
                           "checkpoint", "nockpt")
 
@@ -163,7 +174,7 @@ def test_missing_checkpoint(tmp_path):
 def test_checkpoint_that_does_not_fit(tmp_path):
     imgs = tmp_path / "imgs"
     imgs.mkdir()
-    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], imgs / "a.jpg")
+    shutil.copy(sorted(SAMPLE_IMAGES.glob("*.jpg"))[0], imgs / "a.jpg")
     ck = tmp_path / "ck"
     ck.mkdir()
     shutil.copy(TINY / "model.safetensors", ck / "model.safetensors")
@@ -221,10 +232,13 @@ def test_convert_then_load(converted):
 
 
 def test_bundled_demo_data_found():
-    from rvggt_jax.app.commands import DEMO_IMAGES as images, DEMO_WEIGHTS as weights
+    from rvggt_jax.app.commands import DEMO_SCENE, SAMPLE_IMAGES as images, TINY_WEIGHTS as weights
+    from rvggt_jax.weights.pretrained import bundled_path
 
-    assert images == DEMO_IMAGES and any(images.glob("*.jpg"))
+    assert images == SAMPLE_IMAGES and any(images.glob("*.jpg"))
     assert (weights / "config.json").is_file()
+    assert len(list((DEMO_SCENE / "images").glob("*.png"))) == 8 and (DEMO_SCENE / "cameras.json").is_file()
+    assert (bundled_path("rvggt-small") / "config.json").is_file()
 
 
 def test_select_frames():
@@ -264,7 +278,7 @@ def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
     from rvggt_jax.planning.memory import MEMORY_LIMIT_ENV
 
     monkeypatch.setenv(MEMORY_LIMIT_ENV, "0.001")  # 1 MB
-    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY),
+    code = main(["reconstruct", str(SAMPLE_IMAGES), "--weights", str(TINY),
                  "--out", str(tmp_path / "out"), "--quiet"])
     err = capsys.readouterr().err
     assert code != 0 and err.startswith("rvggt: error:") and "GB" in err and "--max-frames" in err
@@ -274,7 +288,7 @@ def test_reconstruct_refuses_what_does_not_fit(tmp_path, monkeypatch, capsys):
 def test_reconstruct_devices_must_exist(tmp_path, capsys):
     from rvggt_jax.app.cli import main
 
-    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(TINY), "--out", str(tmp_path / "out"),
+    code = main(["reconstruct", str(SAMPLE_IMAGES), "--weights", str(TINY), "--out", str(tmp_path / "out"),
                  "--quiet", "--devices", "64"])
     err = capsys.readouterr().err
     assert code != 0 and err.startswith("rvggt: error:") and "--devices 64" in err and "device(s)" in err

@@ -22,10 +22,10 @@ from PIL import Image
 from rvggt_jax import diagnostics as D
 from rvggt_jax.app import diagnostics_command as dc
 from rvggt_jax.app.cli import main
-from rvggt_jax.app.commands import DEMO_WEIGHTS
+from rvggt_jax.app.commands import TINY_WEIGHTS
 from rvggt_jax.compression.config import make_compression
 from rvggt_jax.compression.partition import Geometry
-from tests.helpers import DEMO_IMAGES
+from tests.helpers import SAMPLE_IMAGES
 
 M, SIZE = 32, "154"
 
@@ -45,14 +45,14 @@ def _no_disk_cache():
 @pytest.fixture(scope="module")
 def analyzed(tmp_path_factory):
     out = tmp_path_factory.mktemp("analyze") / "out"
-    rc = main(["analyze", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(out), "--size", SIZE,
+    rc = main(["analyze", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(out), "--size", SIZE,
                "--m", str(M), "--quiet"])
     assert rc == 0
     return out, json.loads((out / dc.ANALYSIS_JSON).read_text())
 
 
 def _scene():
-    return dc._load_scene(DEMO_IMAGES, SimpleNamespace(max_frames=32, size=int(SIZE)))
+    return dc._load_scene(SAMPLE_IMAGES, SimpleNamespace(max_frames=32, size=int(SIZE)))
 
 
 def test_analyze_writes_the_maps_and_every_number(analyzed):
@@ -72,7 +72,7 @@ def test_analyze_writes_the_maps_and_every_number(analyzed):
     from rvggt_jax.weights.checkpoint import load_checkpoint
 
     images, _ = _scene()
-    params, config = load_checkpoint(str(DEMO_WEIGHTS), skip_track=True, progress=False)
+    params, config = load_checkpoint(str(TINY_WEIGHTS), skip_track=True, progress=False)
     psi = np.asarray(jax.jit(lambda p, x: patch_embed_tokens(p, x, config)[2])(
         params["aggregator"]["patch_embed"], images[None]))[0]
     np.testing.assert_allclose(doc["saliency"]["psi"], psi, rtol=2e-5, atol=1e-9)
@@ -128,7 +128,7 @@ def test_calibrate_from_analyze_json_and_from_images(analyzed, tmp_path, capsys)
         sp["speedup"] / sp["regime_speedup"])
     assert cal["predicted_speedup_vggt1b_100x392x518"]["regime_speedup"] > 2
     # measuring the images again (same m, seed, size) gives the same profile, so the same preset
-    assert main(["calibrate", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "b"),
+    assert main(["calibrate", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "b"),
                  "--size", SIZE, "--m", str(M), "--quiet"]) == 0
     assert D.load_preset(tmp_path / "b" / dc.PRESET_JSON) == comp
     # the file is a preset --preset accepts
@@ -147,8 +147,8 @@ def test_a_preset_file_written_from_regime_runs_identically(analyzed, tmp_path):
     path = D.save_preset(regime, tmp_path / "regime.json")
     loaded = D.load_preset(path, 24)
     assert loaded == regime and hash(loaded) == hash(regime) and loaded is not regime
-    params, by_name = _model_for(DEMO_WEIGHTS, "tiny", ReconstructOptions(preset="regime"))
-    _, by_file = _model_for(DEMO_WEIGHTS, "tiny", ReconstructOptions(preset=str(path)))
+    params, by_name = _model_for(TINY_WEIGHTS, "tiny", ReconstructOptions(preset="regime"))
+    _, by_file = _model_for(TINY_WEIGHTS, "tiny", ReconstructOptions(preset=str(path)))
     assert by_file == by_name and by_file.compression == regime
     images, _ = _scene()
     layers = dc.preset_forward_layers(regime, Geometry(3, 8, 11, 5))  # what analyze ran
@@ -168,18 +168,18 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
     other = tmp_path / "other.json"
     other.write_text(json.dumps({"rank": {}}))
     cases = [
-        (["reconstruct", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "r"),
+        (["reconstruct", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "r"),
           "--preset", str(tmp_path / "missing.json")], "preset file not found"),
-        (["analyze", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "a"),
+        (["analyze", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "a"),
           "--preset", str(bad)], "bad.json is not valid JSON"),
-        (["analyze", str(tmp_path / "nope"), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "a")],
+        (["analyze", str(tmp_path / "nope"), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "a")],
          "image folder not found"),
-        (["analyze", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "a"),
+        (["analyze", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "a"),
           "--size", "100"], "--size must be a positive multiple of 14"),
-        (["calibrate", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "c"),
+        (["calibrate", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "c"),
           "--size", "1000006"], "of at most 1022; got 1000006"),  # XLA used to abort the process
         (["calibrate", str(other), "--out", str(tmp_path / "c")], "not a diagnostics.json"),
-        (["calibrate", str(DEMO_IMAGES), "--out", str(tmp_path / "c")], "--weights is needed"),
+        (["calibrate", str(SAMPLE_IMAGES), "--out", str(tmp_path / "c")], "--weights is needed"),
         (["calibrate", str(tmp_path / "x.json"), "--out", str(tmp_path / "c")], "input not found"),
     ]
     for argv, message in cases:

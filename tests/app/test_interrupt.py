@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from tests.helpers import DEMO_IMAGES, TINY
+from tests.helpers import SAMPLE_IMAGES, TINY
 
 SLOW_S = 4.0  # how long the program below computes inside XLA
 
@@ -89,6 +89,6 @@ def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
             with output_lock(out):
                 pass
         with pytest.raises(CLIError, match="another rvggt run"):
-            reconstruct_folder(DEMO_IMAGES, TINY, out, ReconstructOptions(quiet=True))
+            reconstruct_folder(SAMPLE_IMAGES, TINY, out, ReconstructOptions(quiet=True))
     with output_lock(out):  # released when the first run ends
         pass

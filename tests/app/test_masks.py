@@ -16,7 +16,7 @@ from rvggt_jax.app.messages import CLIError
 from rvggt_jax.app.options import ReconstructOptions
 from rvggt_jax.io.images import find_images, load_images_with_info
 from rvggt_jax.io.masks import MaskError, find_masks, load_masks
-from tests.helpers import DEMO_IMAGES
+from tests.helpers import SAMPLE_IMAGES
 from tests.helpers.readers import read_colmap_text, read_depth_png, read_ply
 
 FRAMES = 2  # the first and last demo image (--max-frames 2): a small forward
@@ -37,7 +37,7 @@ def _write_masks(folder: Path, images, scale=1.0, ext=".png"):
 
 
 def test_masks_found_by_stem_and_preprocessed_like_their_images(tmp_path):
-    paths, _ = find_images(DEMO_IMAGES)
+    paths, _ = find_images(SAMPLE_IMAGES)
     images, infos = load_images_with_info(paths, "crop")
     full = load_masks(find_masks(paths, _write_masks(tmp_path / "full", paths)), infos, images.shape[2:])
     half = load_masks(find_masks(paths, _write_masks(tmp_path / "half", paths, 0.5, ".jpg")), infos,
@@ -50,7 +50,7 @@ def test_masks_found_by_stem_and_preprocessed_like_their_images(tmp_path):
 
 
 def test_missing_ambiguous_and_wrong_size_masks_are_named(tmp_path):
-    paths, _ = find_images(DEMO_IMAGES)
+    paths, _ = find_images(SAMPLE_IMAGES)
     masks = _write_masks(tmp_path / "m", paths)
     (masks / f"{paths[1].stem}.png").unlink()
     with pytest.raises(MaskError, match=f"no mask for image {paths[1].name}"):
@@ -71,10 +71,10 @@ def test_missing_ambiguous_and_wrong_size_masks_are_named(tmp_path):
 
 
 def test_cli_refuses_a_missing_mask_before_loading_weights(tmp_path):
-    paths, _ = find_images(DEMO_IMAGES)
+    paths, _ = find_images(SAMPLE_IMAGES)
     masks = _write_masks(tmp_path / "m", paths[:1])
     with pytest.raises(CLIError, match=f"--masks: no mask for image {paths[1].name}"):
-        commands.reconstruct_folder(DEMO_IMAGES, commands.DEMO_WEIGHTS, tmp_path / "out",
+        commands.reconstruct_folder(SAMPLE_IMAGES, commands.TINY_WEIGHTS, tmp_path / "out",
                                     ReconstructOptions(masks=masks, quiet=True))
 
 
@@ -89,8 +89,8 @@ def test_masks_option_on_the_command_line(tmp_path):
 
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
            "RVGGT_CACHE_DIR": "off", "JAX_PLATFORMS": "cpu"}
-    r = subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", "reconstruct", str(DEMO_IMAGES), "--weights",
-                        str(commands.DEMO_WEIGHTS), "--out", str(tmp_path / "out"), "--masks",
+    r = subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", "reconstruct", str(SAMPLE_IMAGES), "--weights",
+                        str(commands.TINY_WEIGHTS), "--out", str(tmp_path / "out"), "--masks",
                         str(tmp_path / "nowhere")], capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
     errors = [ln for ln in r.stderr.splitlines() if ln.startswith("rvggt: error:")]
@@ -102,7 +102,7 @@ def masked_run(tmp_path_factory):
     """The demo (tiny random weights) on 2 demo images with masks, every point kept;
     the network input the model saw is recorded."""
     tmp = tmp_path_factory.mktemp("masked")
-    paths, _ = find_images(DEMO_IMAGES)
+    paths, _ = find_images(SAMPLE_IMAGES)
     masks_dir = _write_masks(tmp / "masks", paths)
     seen = {}
     run = commands.run_model
@@ -118,7 +118,7 @@ def masked_run(tmp_path_factory):
         out = tmp / "out"
         options = ReconstructOptions(masks=masks_dir, max_frames=FRAMES, conf_threshold="0%", max_points=None,
                                      all_colmap_points=True, quiet=True)
-        commands.reconstruct_folder(DEMO_IMAGES, commands.DEMO_WEIGHTS, out, options)
+        commands.reconstruct_folder(SAMPLE_IMAGES, commands.TINY_WEIGHTS, out, options)
     finally:
         mp.undo()
     chosen = [paths[0], paths[-1]]
@@ -178,11 +178,11 @@ def test_all_black_masks_are_named_as_the_cause(tmp_path, monkeypatch):
 
     monkeypatch.setenv("RVGGT_CACHE_DIR", "off")
     monkeypatch.setattr(commands, "run_model", lambda *a, **k: pytest.fail("the model ran"))
-    paths, _ = find_images(DEMO_IMAGES)
+    paths, _ = find_images(SAMPLE_IMAGES)
     (tmp_path / "masks").mkdir()
     for p in paths:
         w, h = Image.open(p).size
         Image.new("L", (w, h), 0).save(tmp_path / "masks" / f"{p.stem}.png")
     options = ReconstructOptions(masks=tmp_path / "masks", quiet=True)
     with pytest.raises(CLIError, match="keep no pixel of any image"):
-        commands.reconstruct_folder(DEMO_IMAGES, commands.DEMO_WEIGHTS, tmp_path / "out", options)
+        commands.reconstruct_folder(SAMPLE_IMAGES, commands.TINY_WEIGHTS, tmp_path / "out", options)

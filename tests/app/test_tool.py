@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from rvggt_jax.io.ply import read_ply_properties
-from tests.helpers import DEMO_IMAGES, REPO, TINY
+from tests.helpers import SAMPLE_IMAGES, REPO, TINY
 
 
 def make_video(path: Path, seconds: float = 4.0, fps: int = 10, w: int = 160, h: int = 120) -> Path:
@@ -122,7 +122,7 @@ def test_phone_photos_16bit_and_skip_bad(tmp_path, capsys, ckpt):
     src.mkdir()
     _rotated_jpeg(src / "a_phone.jpg")
     Image.fromarray(_gradient16()).save(src / "b_depthcam.png")
-    shutil.copy(sorted(DEMO_IMAGES.glob("*.jpg"))[0], src / "c_plain.jpg")
+    shutil.copy(sorted(SAMPLE_IMAGES.glob("*.jpg"))[0], src / "c_plain.jpg")
     (src / "d_corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\ngarbage")
     # default: stop at the corrupt file, before any model work, naming it
     from rvggt_jax.app.messages import CLIError
@@ -151,7 +151,7 @@ def test_reused_out_dir_needs_overwrite_and_keeps_user_files(tmp_path, ckpt):
 
     src = tmp_path / "imgs"
     src.mkdir()
-    for i, p in enumerate(sorted(DEMO_IMAGES.glob("*.jpg"))):
+    for i, p in enumerate(sorted(SAMPLE_IMAGES.glob("*.jpg"))):
         shutil.copy(p, src / f"f{i}.jpg")
     out = tmp_path / "out"
     reconstruct(src, ckpt, out)
@@ -182,7 +182,7 @@ def test_hub_repo_id_weights(tmp_path, monkeypatch):
     monkeypatch.setattr(c, "HF_HUB_CACHE", str(hf_home / "hub"))
     populate_hub_cache(hf_home, "test/tiny-vggt")
     out = tmp_path / "out"
-    reconstruct(DEMO_IMAGES, "test/tiny-vggt", out)
+    reconstruct(SAMPLE_IMAGES, "test/tiny-vggt", out)
     assert json.loads((out / "cameras.json").read_text())["weights"] == "test/tiny-vggt"
     assert (tmp_path / "converted" / "test--tiny-vggt").is_dir()
 
@@ -212,27 +212,27 @@ def one_error(r, *needles):
 def test_cli_early_failures(tmp_path):
     f = tmp_path / "file.txt"
     f.write_text("x")
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", TINY, "--out", f / "out"), "file.txt", "is a file")
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", TINY, "--out", tmp_path / "o",
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", TINY, "--out", f / "out"), "file.txt", "is a file")
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", TINY, "--out", tmp_path / "o",
                     "--conf-threshold", "nan"), "nan")
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", TINY, "--out", tmp_path / "o", "--every", "2"),
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", TINY, "--out", tmp_path / "o", "--every", "2"),
               "--every")
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", TINY, "--out", tmp_path / "o", "--fps", "0"), "--fps")
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", TINY, "--out", tmp_path / "o", "--fps", "0"), "--fps")
     full = tmp_path / "full"
     full.mkdir()
     (full / "x.txt").write_text("x")
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", TINY, "--out", full), "not empty", "--overwrite")
-    line = one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", "facebook/VGGT-1B", "--out", tmp_path / "o2",
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", TINY, "--out", full), "not empty", "--overwrite")
+    line = one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", "facebook/VGGT-1B", "--out", tmp_path / "o2",
                            env=dict(HF_HUB_OFFLINE="1", HF_HOME=str(tmp_path / "hf"),
                                     RVGGT_WEIGHTS_DIR=str(tmp_path / "w"))),
                      "model.safetensors", "facebook/VGGT-1B", "HF_HUB_OFFLINE")
     assert "loaded" not in line
     pt = tmp_path / "model.pt"
     pt.write_bytes(b"PK not really")
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", pt, "--out", tmp_path / "o3"), "model.pt", "safetensors")
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", pt, "--out", tmp_path / "o3"), "model.pt", "safetensors")
     cut = tmp_path / "cut.safetensors"
     cut.write_bytes((TINY / "model.safetensors").read_bytes()[:3_000_000])
-    one_error(rvggt("reconstruct", DEMO_IMAGES, "--weights", cut, "--out", tmp_path / "o4"), "cut.safetensors",
+    one_error(rvggt("reconstruct", SAMPLE_IMAGES, "--weights", cut, "--out", tmp_path / "o4"), "cut.safetensors",
               "truncated or corrupt")
     # failed runs leave no empty output folder behind
     assert not any((tmp_path / d).exists() for d in ("o", "o2", "o3", "o4"))

@@ -17,7 +17,7 @@ import pytest
 import pycolmap  # noqa: E402
 
 from rvggt_jax.app.cli import main  # noqa: E402
-from rvggt_jax.app.commands import DEMO_IMAGES, DEMO_WEIGHTS  # noqa: E402  (rvggt_jax/examples_data)
+from rvggt_jax.app.commands import SAMPLE_IMAGES, TINY_WEIGHTS  # noqa: E402  (rvggt_jax/examples_data)
 from rvggt_jax.io.ply import read_ply_properties  # noqa: E402
 from tests.helpers import REPO  # noqa: E402
 
@@ -37,7 +37,7 @@ def ba_run(tmp_path_factory):
     env.pop("RVGGT_DEBUG", None)
     # random weights: the tracker's visibility is about 0.02 everywhere and the cameras are
     # arbitrary, so the filters are opened wide for tracks to survive to the BA at all
-    args = ["reconstruct", DEMO_IMAGES, "--weights", DEMO_WEIGHTS, "--out", out, "--ba", "--ba-query-points", "192",
+    args = ["reconstruct", SAMPLE_IMAGES, "--weights", TINY_WEIGHTS, "--out", out, "--ba", "--ba-query-points", "192",
             "--ba-vis-threshold", "0", "--ba-max-error", "1000"]
     r = subprocess.run([sys.executable, "-m", "rvggt_jax.app.cli", *map(str, args)], capture_output=True, text=True,
                        timeout=600, env=env, cwd=REPO)
@@ -59,7 +59,7 @@ def test_reconstruct_with_ba(ba_run):
     said = [ln for ln in r.stdout.splitlines() if ln.startswith("bundle adjustment:")]
     print(said)
     assert len(said) == 1 and f"{before:.4g} px -> {after:.4g} px" in said[0], r.stdout
-    names = sorted(p.name for p in DEMO_IMAGES.iterdir())
+    names = sorted(p.name for p in SAMPLE_IMAGES.iterdir())
     for folder in (out / "sparse_ba", out / "sparse_ba" / "bin"):
         rec = pycolmap.Reconstruction(str(folder))
         assert sorted(img.name for img in rec.images.values()) == names
@@ -76,14 +76,14 @@ def test_reconstruct_with_ba(ba_run):
 
 def test_ba_without_pycolmap_names_the_extra(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # what `import pycolmap` meets when it is not installed
-    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "o"), "--ba"])
+    code = main(["reconstruct", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "o"), "--ba"])
     line = _one_error_line(capsys.readouterr().err)
     assert code == 1 and 'pip install "rvggt-jax[ba]"' in line
     assert not (tmp_path / "o").exists()  # refused before anything was written
 
 
 def test_ba_needs_two_frames(tmp_path, capsys):
-    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "o"), "--ba",
+    code = main(["reconstruct", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "o"), "--ba",
                  "--max-frames", "1", "--quiet"])
     line = _one_error_line(capsys.readouterr().err)
     assert code == 1 and "--ba" in line and "at least 2 images" in line
@@ -96,6 +96,18 @@ def test_ba_needs_two_frames(tmp_path, capsys):
     (["--ba", "--ba-max-error", "-1"], "--ba-max-error must be a positive number"),
 ])
 def test_bad_ba_options(tmp_path, capsys, args, needle):
-    code = main(["reconstruct", str(DEMO_IMAGES), "--weights", str(DEMO_WEIGHTS), "--out", str(tmp_path / "o"), *args])
+    code = main(["reconstruct", str(SAMPLE_IMAGES), "--weights", str(TINY_WEIGHTS), "--out", str(tmp_path / "o"), *args])
     line = _one_error_line(capsys.readouterr().err)
     assert code != 0 and needle in line, line
+
+
+def test_demo_ba_with_the_trained_model(tmp_path):
+    """`rvggt demo --ba`: the trained rvggt-small's tracks triangulate at least 100 points
+    on the bundled held-out scene and bundle adjustment lowers their mean reprojection
+    error."""
+    out = tmp_path / "demo"
+    code = main(["demo", "--out", str(out), "--ba", "--quiet"])
+    assert code == 0
+    report = json.loads((out / "ba_report.json").read_text())
+    assert report["points"] >= 100, report
+    assert report["mean_reprojection_error_after_px"] < report["mean_reprojection_error_before_px"], report

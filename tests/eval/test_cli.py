@@ -1,4 +1,4 @@
-"""`rvggt eval` end to end with the bundled tiny random-weight checkpoint on generated
+"""`rvggt eval` end to end with the default weights (the bundled rvggt-small) on generated
 scenes (dense and regime, one small input shape), resuming from stored results, the
 --against mode, and one-line errors."""
 
@@ -35,7 +35,7 @@ def run(cache, tmp_path_factory):
 def test_eval_end_to_end(run):
     tmp, _, r = run
     assert r.returncode == 0, r.stderr[-3000:]
-    assert "RANDOM" in r.stdout  # no --weights: the tiny random model, said loudly
+    assert "rvggt-small" in r.stdout  # no --weights: the bundled trained small model, said
     out = tmp / "out"
     rows = list(csv.DictReader(open(out / "results.csv")))
     assert {(x["scene"], x["preset"]) for x in rows} == {(s, p) for s in ("synthetic_001", "synthetic_002")

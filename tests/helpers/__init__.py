@@ -6,7 +6,7 @@ that must configure JAX (x64, the host device count) before JAX or rvggt_jax is 
 The other helpers are modules of their own (`from tests.helpers.micro import micro_config`).
 """
 
-from tests.helpers.paths import DATA, DEMO_IMAGES, HELPERS, PACKAGE, PREPROCESS, REPO, TINY
+from tests.helpers.paths import DATA, SAMPLE_IMAGES, HELPERS, PACKAGE, PREPROCESS, REPO, TINY
 from tests.helpers.metrics import rel_err
 
-__all__ = ["DATA", "DEMO_IMAGES", "HELPERS", "PACKAGE", "PREPROCESS", "REPO", "TINY", "rel_err"]
+__all__ = ["DATA", "SAMPLE_IMAGES", "HELPERS", "PACKAGE", "PREPROCESS", "REPO", "TINY", "rel_err"]

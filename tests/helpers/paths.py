@@ -8,4 +8,4 @@ HELPERS = REPO / "tests" / "helpers"
 DATA = REPO / "tests" / "data"
 TINY = DATA / "vggt_tiny"  # the tiny upstream checkpoint and its golden outputs (tests/data/README.md)
 PREPROCESS = DATA / "preprocess"  # upstream's image preprocessing of a few images
-DEMO_IMAGES = PACKAGE / "examples_data" / "images"
+SAMPLE_IMAGES = PACKAGE / "examples_data" / "images"
