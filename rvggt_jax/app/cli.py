@@ -107,7 +107,7 @@ def _port(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from rvggt_jax import __version__
-    from rvggt_jax.app.commands import DEMO_NOTICE
+    from rvggt_jax.app.demo import DEMO_NOTICE
 
     parser = _Parser(prog=PROG, description="VGGT feed-forward 3D reconstruction in JAX.")
     parser.add_argument("--version", action="version", version=f"{PROG} (rvggt-jax) {__version__}")
@@ -376,7 +376,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             build_parser().print_help()
             return 2
-        from rvggt_jax.app.commands import demo, reconstruct_folder
+        from rvggt_jax.app.commands import reconstruct_folder
+        from rvggt_jax.app.demo import demo
 
         _check_view(args)
         if args.command == "reconstruct":

@@ -13,7 +13,7 @@ import time
 import zipfile
 from pathlib import Path, PurePosixPath
 
-from rvggt_jax.app.viewer import Viewer, _code, _md, load_reconstruction
+from rvggt_jax.app.viewer_data import _code, _md, load_reconstruction
 
 __all__ = ["DEFAULT_WORK_DIR", "MAX_UNPACKED_BYTES", "UploadError", "UploadForm", "unpack_upload"]
 
@@ -74,7 +74,8 @@ class UploadForm:
     reconstructing with the elapsed time, loading the result, "done: ..." or
     "failed: <the CLIError's message>"); the result then replaces the shown one."""
 
-    def __init__(self, viewer: Viewer, weights: str | os.PathLike, work_dir: str | os.PathLike, options=None):
+    # viewer: a rvggt_jax.app.viewer.Viewer (not imported: that module imports this one)
+    def __init__(self, viewer, weights: str | os.PathLike, work_dir: str | os.PathLike, options=None):
         import viser
 
         from rvggt_jax.app.options import ReconstructOptions

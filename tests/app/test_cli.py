@@ -102,7 +102,7 @@ def test_demo_end_to_end(demo_run):
     its training size, says which model it ran, and its cameras are real: the median
     relative rotation error against the scene's true cameras is at most half that of
     predicting every camera as the first."""
-    from rvggt_jax.app.commands import DEMO_SCENE
+    from rvggt_jax.app.demo import DEMO_SCENE
 
     out, r = demo_run
     assert r.returncode == 0, r.stderr[-3000:]
@@ -232,7 +232,8 @@ def test_convert_then_load(converted):
 
 
 def test_bundled_demo_data_found():
-    from rvggt_jax.app.commands import DEMO_SCENE, SAMPLE_IMAGES as images, TINY_WEIGHTS as weights
+    from rvggt_jax.app.commands import SAMPLE_IMAGES as images, TINY_WEIGHTS as weights
+    from rvggt_jax.app.demo import DEMO_SCENE
     from rvggt_jax.weights.pretrained import bundled_path
 
     assert images == SAMPLE_IMAGES and any(images.glob("*.jpg"))

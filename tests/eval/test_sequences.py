@@ -245,7 +245,7 @@ def fake_chunking(monkeypatch):
     truth, calls = {}, []
 
     def predict_sequence(image_paths, params, config, *, chunk_frames, overlap, loop_closure=False, mode="crop",
-                         cache_dir=None, quiet=True):
+                         cache_dir=None, quiet=True, size=518):
         calls.append(dict(n=len(image_paths), chunk_frames=chunk_frames, overlap=overlap,
                           loop_closure=loop_closure, mode=mode, preset=config.compression))
         gt = np.stack([truth[p] for p in image_paths])
