@@ -165,8 +165,19 @@ def _adjust(extrinsic, k_net, size, tri: Triangulated, colors, options: BAOption
         tri = Triangulated(points=tri.points[fit], tracks=tri.tracks[:, fit], mask=tri.mask[:, fit],
                            index=tri.index[fit])
         colors = colors[fit]
-        adjusted, _ = run_bundle_adjustment(names, adjusted.extrinsic, adjusted.intrinsic, [size] * s,
-                                            adjusted.points[fit], tri.tracks, tri.mask, colors, **ba)
+        first = dataclasses.replace(adjusted, points=adjusted.points[fit])
+        second, _ = run_bundle_adjustment(names, first.extrinsic, first.intrinsic, [size] * s, first.points,
+                                          tri.tracks, tri.mask, colors, **ba)
+        # the second round starts from the first's solution without the points it could not
+        # fit; from poor cameras it can still diverge (seen: errors of 1e150 px on a model
+        # whose cameras are nearly all alike). Then the first round's solution is the answer.
+        e1 = mean_reprojection_error(first.extrinsic, first.intrinsic, first.points, tri.tracks, tri.mask)
+        e2 = mean_reprojection_error(second.extrinsic, second.intrinsic, second.points, tri.tracks, tri.mask)
+        if np.isfinite(e2) and e2 <= e1:
+            adjusted = second
+        else:
+            adjusted = first
+            counts["second_round_discarded"] = True
     return adjusted, tri, colors
 
 
