@@ -56,17 +56,11 @@ def demo_camera_errors(predicted: Path, truth: Path) -> dict[str, float]:
     identity rotations (every camera the first), AUC@30, RRA@15 and RTA@15."""
     import numpy as np
 
-    from rvggt_jax.eval.camera import camera_auc, relative_pose_errors
+    from rvggt_jax.eval.heldout import camera_scores
 
     pred = {f["image"]: f["extrinsic"] for f in json.loads(predicted.read_text())["frames"]}
     gt = {Path(f["image"]).name: f["extrinsic"] for f in json.loads(truth.read_text())["frames"]}
     names = [n for n in sorted(gt) if n in pred]
     if len(names) < 2:
         raise CLIError(f"{predicted} and {truth} share fewer than 2 images")
-    p = np.array([pred[n] for n in names], np.float64)
-    g = np.array([gt[n] for n in names], np.float64)
-    r_err, _ = relative_pose_errors(p, g)
-    r_id, _ = relative_pose_errors(np.repeat(g[:1], len(g), axis=0), g)
-    auc = camera_auc(p, g, thresholds=(30, 15))
-    return {"rot_err_median": float(np.median(r_err)), "rot_err_identity": float(np.median(r_id)),
-            "auc@30": auc["auc@30"], "rra@15": auc["rra@15"], "rta@15": auc["rta@15"]}
+    return camera_scores(np.array([pred[n] for n in names], np.float64), np.array([gt[n] for n in names], np.float64))

@@ -33,15 +33,11 @@ def resolve_weights(weights: str | Path, quiet: bool) -> Path:
 
 def trained_width(local_weights: str | Path) -> int | None:
     """The network size (its longer side) a checkpoint folder's config.json says it was
-    trained at ("train_image_size": [H, W]), or None."""
-    import json
+    trained at (`rvggt_jax.weights.pretrained.train_image_size`), or None."""
+    from rvggt_jax.weights.pretrained import train_image_size
 
-    try:
-        cfg = json.loads((Path(local_weights) / "config.json").read_text())
-        size = cfg.get("train_image_size")
-        return int(max(size)) if size else None
-    except (OSError, ValueError, TypeError, AttributeError):
-        return None
+    size = train_image_size(local_weights)
+    return max(size) if size else None
 
 
 def load_model(weights: str | Path, quiet: bool = True, name: str | Path | None = None, with_track: bool = False):

@@ -35,7 +35,7 @@ from rvggt_jax.eval.alignment import apply_sim3, umeyama
 from rvggt_jax.eval.camera import camera_auc, relative_pose_errors
 from rvggt_jax.eval.points import chamfer_distance
 
-__all__ = ["best_constant_abs_rel", "images_of", "predicted_cameras", "score_scene", "summarize"]
+__all__ = ["best_constant_abs_rel", "camera_scores", "images_of", "predicted_cameras", "score_scene", "summarize"]
 
 
 def images_of(scene) -> np.ndarray:
@@ -78,20 +78,26 @@ def _abs_rel_median_scaled(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray) 
     return float(np.mean(vals))
 
 
+def camera_scores(pred_extrinsics: np.ndarray, gt_extrinsics: np.ndarray) -> dict[str, float]:
+    """Predicted cameras [S, 3, 4] against the true ones [S, 3, 4] (world-to-camera):
+    median relative rotation error (degrees), the same for identity rotations (every
+    camera the first), AUC@30, RRA@15 and RTA@15."""
+    gt = np.asarray(gt_extrinsics, np.float64)
+    r_err, _ = relative_pose_errors(pred_extrinsics, gt)
+    r_id, _ = relative_pose_errors(np.repeat(gt[:1], len(gt), axis=0), gt)
+    cams = camera_auc(pred_extrinsics, gt, thresholds=(30, 15))
+    return {"rot_err_median": float(np.median(r_err)), "rot_err_identity": float(np.median(r_id)),
+            "auc@30": cams["auc@30"], "rra@15": cams["rra@15"], "rta@15": cams["rta@15"]}
+
+
 def score_scene(out: dict, scene, max_points: int = 20000, seed: int = 0) -> dict[str, float]:
     """The metrics of the module docstring for a forward's outputs `out` (batch of one)
     on `scene` (a `SyntheticScene` at the network size)."""
-    s, h, w = scene.depth.shape
+    _, h, w = scene.depth.shape
     ext, _ = predicted_cameras(out, (h, w))
-    gt_ext = scene.extrinsics
-    r_err, _ = relative_pose_errors(ext, gt_ext)
-    ident = np.repeat(gt_ext[:1], s, axis=0)  # every camera = the first one
-    r_id, _ = relative_pose_errors(ident, gt_ext)
-    cams = camera_auc(ext, gt_ext, thresholds=(30, 15))
     valid = scene.valid
     depth = np.asarray(out["depth"][0, ..., 0], np.float64)
-    res = {"rot_err_median": float(np.median(r_err)), "rot_err_identity": float(np.median(r_id)),
-           "auc@30": cams["auc@30"], "rra@15": cams["rra@15"], "rta@15": cams["rta@15"],
+    res = {**camera_scores(ext, scene.extrinsics),
            "abs_rel": _abs_rel_median_scaled(depth, scene.depth, valid),
            "abs_rel_constant": best_constant_abs_rel(scene.depth, valid)}
     pts = np.asarray(out["world_points"][0], np.float64)[valid]

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.weights.pretrained import BUNDLED
+from rvggt_jax.weights.pretrained import BUNDLED, train_image_size
 
 SHIPPED_DIR = BUNDLED["rvggt-small"]
 """The shipped model's folder (Orbax params + config.json + model card): "rvggt-small"."""
@@ -90,16 +90,6 @@ def record_train_size(model_dir: str | Path, size: tuple[int, int]) -> None:
     cfg = json.loads(path.read_text())
     cfg["train_image_size"] = [int(size[0]), int(size[1])]
     path.write_text(json.dumps(cfg, indent=1))
-
-
-def train_image_size(model_dir: str | Path) -> tuple[int, int] | None:
-    """The [H, W] a model folder's config.json says it was trained at, or None."""
-    path = Path(model_dir) / "config.json"
-    try:
-        size = json.loads(path.read_text()).get("train_image_size")
-    except (OSError, ValueError):
-        return None
-    return (int(size[0]), int(size[1])) if size else None
 
 
 def ship(model_dir: str | Path, dst: str | Path = SHIPPED_DIR) -> Path:

@@ -16,7 +16,7 @@ from rvggt_jax.config import VGGTConfig
 from rvggt_jax.weights.checkpoint import load_checkpoint
 from rvggt_jax.weights.hub import is_repo_id, resolve_checkpoint
 
-__all__ = ["BUNDLED", "bundled_path", "load_pretrained"]
+__all__ = ["BUNDLED", "bundled_path", "load_pretrained", "train_image_size"]
 
 _EXAMPLES = Path(__file__).resolve().parents[1] / "examples_data"
 
@@ -30,12 +30,25 @@ BUNDLED = {
 """Reserved checkpoint names, resolved to folders shipped in the package (offline)."""
 
 
+def train_image_size(model_dir: str | Path) -> tuple[int, int] | None:
+    """The (H, W) a checkpoint folder's config.json says it was trained at
+    ("train_image_size"), or None."""
+    import json
+
+    try:
+        size = json.loads((Path(model_dir) / "config.json").read_text()).get("train_image_size")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return (int(size[0]), int(size[1])) if size else None
+
+
 def bundled_path(name: str) -> Path:
     """The folder of a `BUNDLED` name; FileNotFoundError when the install lacks it."""
     path = BUNDLED[name]
-    if not (path / "config.json").is_file() or not (path / "params").is_dir():
-        raise FileNotFoundError(f"the bundled model {name!r} is missing from this install ({path}: no params/ "
-                                "and config.json); reinstall rvggt-jax")
+    # rvggt-small is an Orbax folder (params/), tiny-random an upstream model.safetensors
+    if not (path / "config.json").is_file() or not ((path / "params").is_dir() or (path / "model.safetensors").is_file()):
+        raise FileNotFoundError(f"the bundled model {name!r} is missing from this install ({path}: no config.json "
+                                "with params/ or model.safetensors); reinstall rvggt-jax")
     return path
 
 

@@ -44,6 +44,8 @@ def test_shipped_model_loads_by_name_with_its_card(small):
         assert needed in card, needed
     with_track, _ = rvggt_jax.load_pretrained("rvggt-small", device_put=False)
     assert "track_head" in with_track
+    # the other bundled name: the upstream-format random-weight model (model.safetensors)
+    assert rvggt_jax.load_pretrained("tiny-random", device_put=False)[1].embed_dim == 32
 
 
 # Issue 51's targets: AbsRel <= 0.6 x the best constant's (met: 0.26 x on ten held-out
