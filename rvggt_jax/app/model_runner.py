@@ -186,6 +186,12 @@ def check_memory(config, shape: tuple[int, int, int], options: ReconstructOption
 
     enable_compilation_cache()
     mesh = devices_mesh(options.devices)
+    if not options.quiet and options.chunk_frames is None:  # one forward of every frame: its time, when long
+        from rvggt_jax.planning.estimate import long_run_line
+
+        line = long_run_line(config, *shape)
+        if line:
+            say(False, line)
     try:
         report = check_fits(config, *shape, param_dtype=options.dtype, mesh=mesh, image_dtype=image_dtype)
     except (InsufficientMemoryError, ValueError) as e:

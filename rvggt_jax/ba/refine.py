@@ -40,6 +40,11 @@ class BAOptions:
     query_frames: frames the query points are taken in (evenly spaced, frame 0 first);
       each costs one forward pass with the track head.
     query_points: query points in all, split evenly over the query frames.
+      Their defaults (2 frames, 512 points) were chosen by measurement: the best camera
+      AUC@30 against the truth after BA on held-out scenes within a budget of 5 s per
+      8-frame BA on a 2-core CPU, the fastest of the near-ties
+      (docs/ba.md, benchmarks/bench_ba_defaults.py; tests/ba/test_ba_defaults.py keeps
+      them equal to docs/ba_defaults.json's choice).
     keypoints: "sift" (SIFT keypoints ranked by depth confidence, topped up with grid
       points) or "grid" (the most confident pixel of each grid cell); see
       `rvggt_jax.ba.tracks`.
@@ -60,7 +65,7 @@ class BAOptions:
       one for all.
     """
 
-    query_frames: int = 4
+    query_frames: int = 2
     query_points: int = 512
     keypoints: str = "sift"
     vis_threshold: float = 0.2
