@@ -52,8 +52,8 @@ def global_block(p_block: Params, x: jax.Array, pos, layer: int, config, state: 
         return dense_global_block(p_block, x, pos, config, shards, L), state
     if plan.kind == LayerKind.FRAME:
         frame_pos = pos.first(L) if isinstance(pos, layers.RopeTables) else pos[:, :L]
-        out = layers.block(p_block, x.reshape(b * shards.local, L, c), config.num_heads, frame_pos, config.rope_freq,
-                           dtype=config.compute_dtype)
+        out = layers.sequence_block(p_block, x.reshape(b * shards.local, L, c), frame_pos,
+                                    layers.BlockConfig.of(config))
         return out.reshape(b, n, c), state
     if not isinstance(pos, layers.RopeTables):
         pos = layers.RopeTables.from_positions(pos, c // config.num_heads, config.rope_freq)

@@ -1,5 +1,5 @@
 """The dense global block: upstream's Block over the whole sequence [B, S*P, C], each
-token attending to every token of every frame. On one device it is `layers.block`; with
+token attending to every token of every frame. On one device it is `layers.sequence_block`; with
 the frames split over devices, the keys travel around the devices (`ops.ring`).
 
 RegimeVGGT's compressed global blocks are `rvggt_jax.compression.global_block`; the
@@ -26,8 +26,9 @@ def dense_global_block(p_block: Params, x: jax.Array, pos, config, shards: Frame
     (`shards`), its queries attend to every device's keys around the ring; padding frames
     are masked."""
     heads, dtype = config.num_heads, config.compute_dtype
+    cfg = layers.BlockConfig.of(config)
     if shards is None or not shards.sharded:
-        return layers.block(p_block, x, heads, pos, config.rope_freq, dtype=dtype)
+        return layers.sequence_block(p_block, x, pos, cfg)
     b, n, c = x.shape
     if not isinstance(pos, layers.RopeTables):
         pos = layers.RopeTables.from_positions(pos, c // heads, config.rope_freq)
@@ -36,6 +37,6 @@ def dense_global_block(p_block: Params, x: jax.Array, pos, config, shards: Frame
     if shards.padded > shards.frames:
         real = shards.offset(per_frame) + jnp.arange(n) < shards.frames * per_frame
         mask = jnp.broadcast_to(jnp.where(real, 0.0, NEG_BIAS).astype(jnp.float32), (b, n))
-    out = ring_attention(q, k, v, mask, shards)
+    out = ring_attention(q, k, v, mask, shards, implementation=config.attention)
     # the block around the ring's output rows
-    return layers.block_with_attention(p_block, x, lambda xc, oc: oc, (out,), dtype=dtype)
+    return layers.chunked_block(p_block, x, lambda oc: lambda h: layers.project(p_block, oc), (out,), cfg)

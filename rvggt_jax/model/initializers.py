@@ -93,7 +93,7 @@ def _block(key: jax.Array, kind: str, value: jax.Array, cut: jax.Array) -> jax.A
 
 def draw(spec: InitSpec, key: jax.Array, shape: tuple[int, ...], dtype: Any = jnp.float32) -> jax.Array:
     """One leaf of `shape` drawn per `spec` from `key`. Eagerly and under `jax.jit` the
-    draws are the same up to float rounding (XLA fuses the scaling differently)."""
+    draws are the same up to float rounding (the compiled scaling fuses differently)."""
     if spec.kind in ("zeros", "ones", "constant"):
         v = {"zeros": 0.0, "ones": 1.0}.get(spec.kind, spec.value)
         return jnp.asarray(np.full(shape, v, np.float32)).astype(dtype)  # no per-shape program

@@ -1,6 +1,6 @@
 """The layout of the converted parameter tree: every path and shape a config implies,
 derived through the rule table (`rules.py`) from upstream's state-dict shapes
-(`shapes.py`). The model checks a tree against it (`model.forward.check_params`) and the
+(`shapes.py`). The model checks a tree against it (`model.inputs.check_params`) and the
 converter and checkpoints build on it; like those two modules it imports only `config`
 of the package, so the model may use it."""
 
