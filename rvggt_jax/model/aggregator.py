@@ -2,7 +2,7 @@
 global blocks over camera, register and patch tokens.
 
 Frame blocks attend within each frame ([B*S, P, C]); global blocks attend across the
-whole sequence ([B, S*P, C]): dense ones are `global_block.dense_global_block`, and
+whole sequence ([B, S*P, C]): dense ones are `layers.dense_global_block`, and
 RegimeVGGT's compressed ones `compression.global_block`. The layers the heads read are
 returned as `KeptLayer`s (`kept.py`).
 """
@@ -19,7 +19,6 @@ import jax.numpy as jnp
 from rvggt_jax import compression
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.model import layers, remat
-from rvggt_jax.model.global_block import dense_global_block
 from rvggt_jax.model.kept import KeptLayer, KeptLayers, ProjectedLayer, Projection, weights_after
 from rvggt_jax.model.params import Params
 from rvggt_jax.model.patch_embed import patch_embed_tokens
@@ -167,7 +166,7 @@ def _scan_layers(p: Params, x: jax.Array, kept: KeptLayers, group: tuple[int, ..
         x, kept, p_global = kept.before_global_block(x, p_global, single=len(group) == 1)
         x = x.reshape(b, s * num_tokens, c)
         if state is None:
-            x = dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
+            x = layers.dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
         else:
             x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
             if band:

@@ -54,7 +54,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.bits import on_cpu
 from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
 from rvggt_jax.ops.kernels.fused import (CUDNN_MAX_HEAD_DIM, cudnn_lse_available, fused_attention,
@@ -185,9 +184,11 @@ def _lse_available(name: str) -> bool:
 
 def _blocked(q, k, v, bias32, scale: float, block_bytes: int, out_dtype: Any = None):
     """The blocked kernel's (out, lse), its 16-bit operands held as bits only in a program
-    compiled for a CPU (`bits.on_cpu`; `blocked_attention`)."""
-    return on_cpu(lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype),
-                  lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=False))
+    compiled for a CPU (`blocked_attention`; the branch is chosen when the program is
+    lowered for its platform, as `bits.on_cpu` does)."""
+    return jax.lax.platform_dependent(
+        cpu=lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype),
+        default=lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=False))
 
 
 # Each kernel by name, on checked operands (q, k, v, the float32 key bias or None, scale,
