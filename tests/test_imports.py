@@ -203,11 +203,11 @@ IMPORT_RULES = {
     "compression": {"config", "errors", "ops", "model"},
     "parallel": {"config", "ops", "model"},
     "weights": {"config", "model.params"},
-    "planning": {"config", "ops", "compression", "model", "parallel", "weights"},
+    "planning": {"config", "errors", "ops", "compression", "model", "parallel", "weights"},
     "io": {"geometry"},
     "ba": {"geometry", "io"},
     "eval": {"geometry", "io", "model", "weights"},
-    "train": {"config", "geometry", "eval", "model", "parallel", "synthetic", "weights"},
+    "train": {"config", "errors", "geometry", "eval", "model", "parallel", "synthetic", "weights"},
     "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},
     "examples_data": {"synthetic", "eval"},  # generate.py renders the demo scene (folder format)
     "diagnostics": {"config", "compression", "model", "planning"},
