@@ -52,7 +52,7 @@ WHATS = ("convert", "cli", "restore", "load_st")
 
 def _layout(scale: str):
     """(config, {key: shape}) for the chosen scale."""
-    from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+    from rvggt_jax.model.params import upstream_state_dict_shapes
     from rvggt_jax.config import VGGTConfig
 
     if scale == "1b":

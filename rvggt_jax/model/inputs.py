@@ -15,8 +15,7 @@ import numpy as np
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.errors import InputError
 from rvggt_jax.model.input_range import warn_if_out_of_range
-from rvggt_jax.model.params import Params
-from rvggt_jax.weights.layout import expected_param_paths, flatten_params
+from rvggt_jax.model.params import Params, expected_param_paths, flatten_params
 
 
 def _is_float(x: Any) -> bool:

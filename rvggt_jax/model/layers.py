@@ -1,6 +1,6 @@
 """Transformer building blocks as pure functions over parameter dicts.
 
-Parameter leaves follow the converter's conventions (see `rvggt_jax/weights/rules.py`):
+Parameter leaves follow the converter's conventions (see `rvggt_jax/model/param_rules.py`):
 Linear -> {"kernel": [in, out], "bias": [out]}; LayerNorm -> {"scale", "bias"};
 the upstream fused `qkv` Linear is split into {"q", "k", "v"} Linears;
 LayerScale -> {"gamma": [C]}.
