@@ -3,7 +3,7 @@ blocked kernel: its custom VJP (flash attention's backward, O(N d)) against JAX'
 autodiff of the same forward loop (what the kernel had before issue 25: every query
 block's softmax weights kept, O(N^2)).
 
-    python benchmarks/bench_attention_grad.py                  # the table of docs/benchmarks.md
+    python benchmarks/bench_attention_grad.py                  # the table of docs/history/training.md
     python benchmarks/bench_attention_grad.py --tokens 2048 8192 --heads 1 --dtype float32
 
 q, k, v [1, N, H, 64] and a key bias [1, N] (a global layer: N = frames x tokens per

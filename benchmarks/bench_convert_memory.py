@@ -13,7 +13,7 @@ dominate there).
 
 Measured, each in a fresh process (`--what`, default all): `convert` =
 `convert.load_safetensors` (upstream file -> numpy params, the target above); `cli` =
-`python -m rvggt_jax.convert SRC DST` (conversion + writing the Orbax checkpoint); `restore` =
+`rvggt convert SRC DST` (conversion + writing the Orbax checkpoint); `restore` =
 `load_pretrained` of that Orbax folder; `load_st` = `load_pretrained` of the upstream
 file (conversion with each leaf put on the default device).
 """
@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT))
 MANIFEST = ROOT / "tests" / "data" / "vggt_1b_manifest.json"
 TINY_CONFIG = ROOT / "tests" / "data" / "vggt_tiny" / "config.json"
 TARGET_RATIO = 1.3
-# convert: convert.load_safetensors (numpy leaves); cli: `python -m rvggt_jax.convert` (conversion +
+# convert: convert.load_safetensors (numpy leaves); cli: `rvggt convert` (conversion +
 # Orbax save); restore: load_pretrained(the CLI's Orbax folder); load_st:
 # load_pretrained(the upstream file) with device_put.
 WHATS = ("convert", "cli", "restore", "load_st")
@@ -52,7 +52,7 @@ WHATS = ("convert", "cli", "restore", "load_st")
 
 def _layout(scale: str):
     """(config, {key: shape}) for the chosen scale."""
-    from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+    from rvggt_jax.model.params import upstream_state_dict_shapes
     from rvggt_jax.config import VGGTConfig
 
     if scale == "1b":
@@ -139,7 +139,7 @@ def _child(args) -> None:
     sampler.start()
     t0 = time.perf_counter()
     params, t1 = None, None
-    if args.what == "cli":  # exactly what `python -m rvggt_jax.convert SRC DST` does
+    if args.what == "cli":  # exactly what `rvggt convert SRC DST` does
         from rvggt_jax.app.convert_command import main as cli_main
 
         timings = {}

@@ -9,7 +9,7 @@ Pairs (ours vs peer; a pair runs when its peer's source folder is given):
   dense     vs upstream VGGT           (--upstream-src: the folder holding vggt/)
   fastvggt  vs FastVGGT's own code     (--fastvggt-src: the folder holding merging/ and vggt/)
   regime    vs the RegimeVGGT authors' code (--regime-src: upstream VGGT with the authors'
-            methods/, eval/ and vggt/ files written over it; see docs/benchmarks.md,
+            methods/, eval/ and vggt/ files written over it; see docs/history/peers.md,
             "Against the PyTorch peers", for how the folder is assembled)
 
 Layout: the benchmarks' speed layout (`bench_memory.small_layout`: 24 layers of width 64,
@@ -75,7 +75,7 @@ import rvggt_jax  # noqa: E402
 from benchmarks import host_load  # noqa: E402
 from benchmarks.bench_memory import small_layout  # noqa: E402
 from rvggt_jax.compression.partition import dst_cells  # noqa: E402
-from rvggt_jax.ops import host_heap  # noqa: E402
+from rvggt_jax.app import host_heap  # noqa: E402
 
 KEYS = ("pose_enc", "depth", "depth_conf", "world_points", "world_points_conf")
 WORKER = ROOT / "benchmarks" / "peer_worker.py"

@@ -90,13 +90,13 @@ def trunk_forward(params, tokens: jax.Array, saliency: jax.Array, config: VGGTCo
     x = tokens.reshape(b * s, p, c)
     out = {}
     for i in range(config.depth):
-        x = layers.block(params["frame_blocks"][str(i)], x.reshape(b * s, p, c), config.num_heads, frame_pos,
-                         config.rope_freq)
+        x = layers.sequence_block(params["frame_blocks"][str(i)], x.reshape(b * s, p, c), frame_pos,
+                                  layers.BlockConfig(config.num_heads, rope_freq=config.rope_freq))
         frame_out = x
         x = x.reshape(b, s * p, c)
         pg = params["global_blocks"][str(i)]
         if state is None:
-            x = layers.block(pg, x, config.num_heads, global_pos, config.rope_freq)
+            x = layers.sequence_block(pg, x, global_pos, layers.BlockConfig(config.num_heads, rope_freq=config.rope_freq))
         else:
             x, state = compression.global_block(pg, x, global_pos, i, config, state)
         if i in KEEP:
@@ -131,8 +131,8 @@ def kv_fill(config: VGGTConfig, tokens, saliency, params, grid_hw) -> float:
         x = tokens.reshape(b * s, p, c)
         filled = []
         for i, plan in enumerate(plans):
-            x = layers.block(params["frame_blocks"][str(i)], x.reshape(b * s, p, c), config.num_heads, frame_pos,
-                             config.rope_freq).reshape(b, s * p, c)
+            x = layers.sequence_block(params["frame_blocks"][str(i)], x.reshape(b * s, p, c), frame_pos,
+                                      layers.BlockConfig(config.num_heads, rope_freq=config.rope_freq)).reshape(b, s * p, c)
             pg = params["global_blocks"][str(i)]
             dyn = plan.kind == "merge" and plan.kv_mode == "select"
             if dyn and plan.match_key is None:

@@ -17,7 +17,7 @@ same size with `--shared-intrinsics`, through `build_reconstruction` and
 is then checked too when nerfstudio imports in that environment. The two need not share an
 environment (nerfstudio brings torch, and dependencies that hold numpy below 2; the project
 needs jax): this script imports rvggt_jax only to write, nerfstudio only to check.
-docs/benchmarks.md has the commands run, the results and what the install took.
+docs/benchmarks.md has the commands run and the results; docs/history/nerfstudio.md what the install took.
 
 What is checked, against the folder's `cameras.json` (our cameras in the original
 images' pixels: 3x4 world-to-camera with OpenCV axes, 3x3 pinhole, width, height), with

@@ -268,7 +268,7 @@ def hybrid_config(src: Path) -> tuple[dict, str]:
     f = src / "eval" / "eval_scannet50.py"
     if not f.exists():
         raise SystemExit(f"{f} is missing: the regime peer reads the authors' HYBRID_CONFIG from it "
-                         "(see docs/benchmarks.md, 'Against the PyTorch peers', for the folder)")
+                         "(see docs/history/peers.md, 'Against the PyTorch peers', for the folder)")
     for node in ast.parse(f.read_text()).body:
         if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "HYBRID_CONFIG" for t in node.targets):
             call = node.value  # dict(key=literal, ...)

@@ -4,7 +4,7 @@ rvggt-jax's parameter tree, saved as an Orbax checkpoint:
     python convert/convert_checkpoint.py model.safetensors weights/ [--config config.json] [--no-track]
 
 A thin entry over the package's converter (`rvggt_jax.weights`); the same command is
-`rvggt convert` and `python -m rvggt_jax.convert`.
+`rvggt convert`.
 """
 
 import sys

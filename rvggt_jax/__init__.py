@@ -12,7 +12,7 @@ import importlib
 _LAZY = {
     "VGGTConfig": "rvggt_jax.config",
     "rvggt_forward": "rvggt_jax.model.forward",
-    "as_query_points": "rvggt_jax.model.forward",
+    "as_query_points": "rvggt_jax.model.inputs",
     "InputError": "rvggt_jax.errors",
     "InputRangeWarning": "rvggt_jax.model.input_range",
     "warn_if_out_of_range": "rvggt_jax.model.input_range",
@@ -24,23 +24,17 @@ _LAZY = {
     "sharded_forward": "rvggt_jax.parallel.sharded",
     "frames_mesh": "rvggt_jax.parallel.sharded",
     # multi-threaded XLA:CPU convolutions; importing rvggt_jax leaves os.environ alone, the
-    # `rvggt` command calls it (see rvggt_jax.ops.xla_cpu)
-    "prefer_threaded_convolutions": "rvggt_jax.ops.xla_cpu",
-    # glibc's malloc keeping freed memory for the next run (rvggt_jax.ops.host_heap); the
+    # `rvggt` command calls it (see rvggt_jax.app.xla_cpu)
+    "prefer_threaded_convolutions": "rvggt_jax.app.xla_cpu",
+    # glibc's malloc keeping freed memory for the next run (rvggt_jax.app.host_heap); the
     # `rvggt` command calls it
-    "keep_freed_host_memory": "rvggt_jax.ops.host_heap",
+    "keep_freed_host_memory": "rvggt_jax.app.host_heap",
 }
-# Submodules reachable as attributes without an explicit import: `rvggt_jax.nn.VGGT` (the
-# Flax modules, `rvggt_jax.model.modules`, under the name they had before the layout).
-_SUBMODULES = {"nn": "rvggt_jax.model.modules", "train": "rvggt_jax.train"}
-
-__all__ = [*_LAZY, *_SUBMODULES]
+__all__ = [*_LAZY]
 __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
-    if name in _SUBMODULES:
-        return importlib.import_module(_SUBMODULES[name])
     raise AttributeError(f"module 'rvggt_jax' has no attribute {name!r}")

@@ -41,7 +41,7 @@ def _lazy_names() -> dict[str, str]:
     using the name imports."""
     import rvggt_jax
 
-    return {**rvggt_jax._LAZY, **rvggt_jax._SUBMODULES}
+    return dict(rvggt_jax._LAZY)
 
 
 def _lazy_uses(tree: ast.AST, lazy: dict[str, str], package: str = "rvggt_jax") -> dict[str, int]:
@@ -190,7 +190,7 @@ def test_no_import_cycle_counting_every_import():
 # Which part of the package may import which (docs/architecture.md): a part is a
 # subpackage or a top-level module; each may import itself and the parts (or modules, as
 # "model.params", with what is below them) listed here, and the packages above those (a
-# package's __init__ runs before its modules: importing weights.rules runs weights/__init__).
+# package's __init__ runs before its modules: importing model.params runs model/__init__).
 # "rvggt_jax" is the package's own __init__, whose lazy table is not an import edge.
 IMPORT_RULES = {
     "rvggt_jax": {"config"},
@@ -199,20 +199,20 @@ IMPORT_RULES = {
     "errors": set(),
     "sequence": {"errors", "synthetic"},
     "ops": set(),
-    "model": {"config", "errors", "ops", "compression", "weights.rules", "weights.shapes", "weights.layout"},
+    "model": {"config", "errors", "ops", "compression"},
     "compression": {"config", "errors", "ops", "model"},
     "parallel": {"config", "ops", "model"},
-    "weights": {"config", "model.params"},
-    "planning": {"config", "ops", "compression", "model", "parallel", "weights"},
+    "weights": {"config", "model.params", "model.param_rules"},
+    "planning": {"config", "errors", "ops", "compression", "model", "parallel", "weights"},
     "io": {"geometry"},
     "ba": {"geometry", "io"},
     "eval": {"geometry", "io", "model", "weights"},
-    "train": {"config", "geometry", "eval", "model", "parallel", "synthetic", "weights"},
+    "train": {"config", "errors", "geometry", "eval", "model", "parallel", "synthetic", "weights"},
     "synthetic": {"config", "geometry", "eval", "model", "synthetic", "weights"},
     "examples_data": {"synthetic", "eval"},  # generate.py renders the demo scene (folder format)
     "diagnostics": {"config", "compression", "model", "planning"},
 }
-ANYTHING = ("app", "convert")  # the command line and the `python -m rvggt_jax.convert` entry
+ANYTHING = ("app",)  # the command line
 
 
 def _part(module: str) -> str:
@@ -288,17 +288,32 @@ def test_import_leaves_the_environment_alone():
     assert changed == {}, f"environment variables changed by importing rvggt_jax (before, after): {changed}"
 
 
-@pytest.mark.parametrize("first, second", [("rvggt_jax.convert", "rvggt_jax.weights.checkpoint"),
-                                           ("rvggt_jax.weights.checkpoint", "rvggt_jax.convert")])
+@pytest.mark.parametrize("first, second", [("rvggt_jax.app.convert_command", "rvggt_jax.weights.checkpoint"),
+                                           ("rvggt_jax.weights.checkpoint", "rvggt_jax.app.convert_command")])
 def test_converter_and_loader_import_in_either_order(first, second):
-    code = (f"import {first}, {second}; "
-            "assert rvggt_jax.weights.checkpoint.CheckpointError is rvggt_jax.convert.CheckpointError")
+    code = (f"import {first}, {second}; import rvggt_jax.weights; "
+            "assert rvggt_jax.weights.checkpoint.CheckpointError is rvggt_jax.weights.CheckpointError")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 
 
-def test_python_m_converter_runs():
-    r = subprocess.run([sys.executable, "-m", "rvggt_jax.convert", "--help"], capture_output=True, text=True,
-                       timeout=120)
+def test_retired_shims_are_gone():
+    """0.1's aliases (`rvggt_jax.convert`, `rvggt_jax.nn`, the `rvggt_jax.train` attribute
+    without an import) are retired (README, release notes): each is an error now."""
+    code = ("import importlib, rvggt_jax\n"
+            "for name in ('nn', 'train'):\n"
+            "    try:\n        getattr(rvggt_jax, name)\n    except AttributeError:\n        pass\n"
+            "    else:\n        raise SystemExit('rvggt_jax.' + name + ' still resolves')\n"
+            "try:\n    importlib.import_module('rvggt_jax.convert')\nexcept ModuleNotFoundError:\n    pass\n"
+            "else:\n    raise SystemExit('rvggt_jax.convert still imports')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_convert_script_runs():
+    """The design card's converter script (`convert/convert_checkpoint.py`) runs."""
+    script = PACKAGE.parent / "convert" / "convert_checkpoint.py"
+    r = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=120,
+                       cwd=PACKAGE.parent)
     assert r.returncode == 0, r.stderr
-    assert "usage: python -m rvggt_jax.convert" in r.stdout
+    assert "usage: python convert/convert_checkpoint.py" in r.stdout

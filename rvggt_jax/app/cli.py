@@ -69,7 +69,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _convert(argv: Sequence[str]) -> int:
-    """`rvggt convert ...` = the converter's own command line (`python -m rvggt_jax.convert`)."""
+    """`rvggt convert ...` = the converter's own command line (`python convert/convert_checkpoint.py`)."""
     try:
         from rvggt_jax.app.convert_command import main as entry
     except ImportError as e:
@@ -357,8 +357,8 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `rvggt` console script; returns the exit status."""
-    from rvggt_jax.ops.host_heap import keep_freed_host_memory
-    from rvggt_jax.ops import xla_cpu
+    from rvggt_jax.app.host_heap import keep_freed_host_memory
+    from rvggt_jax.app import xla_cpu
 
     argv = list(sys.argv[1:] if argv is None else argv)
     # before anything imports JAX: no probing of absent accelerators, and on the CPU alone

@@ -1,4 +1,4 @@
-"""`python -m rvggt_jax.convert SRC DST [--config config.json] [--no-track] [--quiet] [--overwrite]`
+"""`rvggt convert SRC DST [--config config.json] [--no-track] [--quiet] [--overwrite]`
 
 Converts an upstream VGGT checkpoint (a `.safetensors` file, or a folder holding
 `model.safetensors`) to an Orbax checkpoint folder `DST` (`DST/params/` + `DST/config.json`)
@@ -29,7 +29,7 @@ class _Parser(argparse.ArgumentParser):
         raise CLIError(f"{message} (see `{self.prog} --help`)", code=2)
 
 
-def build_parser(prog: str = "python -m rvggt_jax.convert") -> argparse.ArgumentParser:
+def build_parser(prog: str = "rvggt convert") -> argparse.ArgumentParser:
     ap = _Parser(prog=prog, description=__doc__.split("\n\n")[1].replace("\n", " "))
     ap.add_argument("src", type=Path, help=f"upstream .safetensors file, or a folder holding {SAFETENSORS_NAME}")
     ap.add_argument("dst", type=Path, help="output folder (Orbax checkpoint in DST/params + DST/config.json)")
@@ -61,7 +61,7 @@ def _resolve_src(src: Path) -> Path:
     return src
 
 
-def main(argv: Sequence[str] | None = None, prog: str = "python -m rvggt_jax.convert", *,
+def main(argv: Sequence[str] | None = None, prog: str = "rvggt convert", *,
          timings: dict | None = None) -> int:
     """CLI entry point; returns the exit status (0 ok, 1 bad checkpoint / paths).
     `timings`, if given, receives `convert_s` and `save_s`."""

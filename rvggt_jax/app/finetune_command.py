@@ -69,7 +69,7 @@ def add_finetune_parser(sub) -> None:
 
 def run_finetune_command(args) -> int:
     """`rvggt finetune` from parsed arguments."""
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.train.loop import FinetuneOptions, device_layout, finetune, load_model
 
     try:
@@ -135,7 +135,7 @@ def run_train_small_command(args) -> int:
     """`rvggt train-small` from parsed arguments."""
     import dataclasses
 
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.train.data import frame_plan
     from rvggt_jax.train.small import SmallRecipe, ship, train_small
 

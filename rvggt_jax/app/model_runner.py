@@ -97,7 +97,7 @@ def enable_compilation_cache() -> str | None:
 
 def run_model(params, images, config, weights, compiled=None, mesh=None) -> dict:
     """`rvggt_jax.app.pipeline.run_model` with its failures as one-line `CLIError`s naming `weights`."""
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.app.pipeline import run_model as forward
 
     enable_compilation_cache()

@@ -76,7 +76,7 @@ def use_host_compilers() -> None:
     """Deviceless compiles need no device client: JAX on the CPU unless the user chose
     (JAX_PLATFORMS), and libtpu quiet and shareable (it compiles only). Before JAX's
     backends start; `import rvggt_jax` never does this."""
-    from rvggt_jax.ops.xla_cpu import use_cpu_backend
+    from rvggt_jax.app.xla_cpu import use_cpu_backend
 
     use_cpu_backend()
     os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")

@@ -5,7 +5,7 @@
 
 `layer` is a Python int: every layer has its own static plan (`plan.layer_plan`) and the
 state may gain entries (the band caches) from one layer to the next. The plan's kind
-picks the block: dense (`model.global_block`), within frames, K/V-downsampled
+picks the block: dense (`model.layers.dense_global_block`), within frames, K/V-downsampled
 (`kv_layer.kv_block`) or merging (`merged_layer.merging_block`). Nothing branches on
 data: every shape comes from (x.shape, geometry, configuration), and the blocks check
 their attention's shapes against the plan at trace time, so the plan (what `cost.py`
@@ -27,7 +27,6 @@ from rvggt_jax.compression.merged_layer import merging_block
 from rvggt_jax.compression.plan import layer_plan
 from rvggt_jax.compression.state import State
 from rvggt_jax.model import layers
-from rvggt_jax.model.global_block import dense_global_block
 from rvggt_jax.model.params import Params
 
 
@@ -49,11 +48,11 @@ def global_block(p_block: Params, x: jax.Array, pos, layer: int, config, state: 
         raise ValueError(f"global block {layer}: {n} tokens but the state describes {shards.local * L}")
 
     if plan.kind == LayerKind.DENSE:
-        return dense_global_block(p_block, x, pos, config, shards, L), state
+        return layers.dense_global_block(p_block, x, pos, config, shards, L), state
     if plan.kind == LayerKind.FRAME:
         frame_pos = pos.first(L) if isinstance(pos, layers.RopeTables) else pos[:, :L]
-        out = layers.block(p_block, x.reshape(b * shards.local, L, c), config.num_heads, frame_pos, config.rope_freq,
-                           dtype=config.compute_dtype)
+        out = layers.sequence_block(p_block, x.reshape(b * shards.local, L, c), frame_pos,
+                                    layers.BlockConfig.of(config))
         return out.reshape(b, n, c), state
     if not isinstance(pos, layers.RopeTables):
         pos = layers.RopeTables.from_positions(pos, c // config.num_heads, config.rope_freq)

@@ -37,8 +37,9 @@ def kv_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerP
         log_g = log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
     kk, vv = rows_kv(p_block, x, sel, pos, config, state.shards, plan.per_frame)
     check_shapes(plan, comp, x.shape[1], kk, log_g)
-    attend = layers.attention_to(p_block, config.num_heads, kk, vv, log_g, dtype=config.compute_dtype)
-    return layers.block_with_attention(p_block, x, attend, (pos.cos, pos.sin), dtype=config.compute_dtype)
+    cfg = layers.BlockConfig.of(config)
+    return layers.chunked_block(p_block, x, lambda *tc: layers.attention_to(p_block, cfg, kk, vv, log_g, *tc),
+                                (pos.cos, pos.sin), cfg)
 
 
 def rows_kv(p_block: Params, x: jax.Array, idx: jax.Array, pos: layers.RopeTables, config,

@@ -16,6 +16,7 @@ import numpy as np
 
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.ordering import materialize
 
 
 def normalize(x: jax.Array, eps: float = 1e-6) -> jax.Array:
@@ -111,7 +112,7 @@ def _best(a: jax.Array, d: jax.Array, nb: int, rank: jax.Array | None = None) ->
     blocks = sims.reshape(sims.shape[:-1] + (chunks_n, c))
     # (the barrier: else XLA folds the max of the chunk maxima into a second pass over
     # every similarity)
-    top_c = jax.lax.optimization_barrier(jnp.max(blocks, axis=-1))  # [..., Na, chunks]
+    top_c = materialize(jnp.max(blocks, axis=-1))  # [..., Na, chunks]
     top = jnp.max(top_c, axis=-1)
     k = _first_reaching(top_c, top).astype(jnp.int32)  # chunks_n where none (a NaN row)
     chunk = jnp.take_along_axis(blocks, jnp.minimum(k, chunks_n - 1)[..., None, None], axis=-2,

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from rvggt_jax.ops import chunks
-from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.ordering import materialize, zeros_after
 from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.compression.matching import best_match
 from rvggt_jax.compression.plan import LayerPlan
@@ -224,7 +224,7 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
     offsets = (jnp.arange(b, dtype=jnp.int32) * n_query)[:, None]
     rows = chunks.row_chunks(n, b * bytes_per_row)
     spec = jax.eval_shape(fn, *[chunks.dynamic_slice(t, 0, min(rows, n), 1) for t in inputs])
-    sums = tuple(zeros_from((b * n_query,) + o.shape[2:], jnp.float32, x0 if dep is None else dep)
+    sums = tuple(zeros_after((b * n_query,) + o.shape[2:], jnp.float32, x0 if dep is None else dep)
                  for o in spec)
 
     def add(acc, group, *chunk):
@@ -251,10 +251,10 @@ def merge_map(fn, inputs: tuple, match: Match, n_query: int, bytes_per_row: int,
 def materialized(means):
     """The means as buffers of their own dtype, made here: else XLA fuses the division
     and the cast into their consumers, the attention much later, and the float32 sums stay
-    alive until then (a later `zeros_from(mean)` reads one element straight from the sum).
+    alive until then (a later `zeros_after(mean)` reads one element straight from the sum).
     In XLA:GPU's plan of `regime` at 1000 frames, q's and k's sums were alive next to v's
     (3 x 2.1 GB where one was meant to be)."""
-    return jax.lax.optimization_barrier(means)
+    return materialize(means)
 
 
 def block_sums(values: jax.Array, group: jax.Array, rows: int, into: jax.Array | None = None) -> jax.Array:
@@ -273,7 +273,7 @@ def block_sums(values: jax.Array, group: jax.Array, rows: int, into: jax.Array |
         return acc.at[ids].add(vc.reshape((-1,) + vc.shape[2:]).astype(jnp.float32), mode="drop")
 
     shape = (b * rows,) + values.shape[2:]
-    sums = zeros_from(shape, jnp.float32, values) if into is None else into.reshape(shape)
+    sums = zeros_after(shape, jnp.float32, values) if into is None else into.reshape(shape)
     # (a quarter of a token chunk: the float32 chunk sits next to the ring's two blocks
     # of sums at the sharded forward's peak)
     chunk = chunks.row_chunks(n, b * math.prod(values.shape[2:]) * 4, chunks.TOKEN_CHUNK_BYTES // 4)

@@ -41,7 +41,7 @@ from rvggt_jax.model import layers
 from rvggt_jax.model.params import Params
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.attention import attention, log_sizes
-from rvggt_jax.ops.ordering import with_dependency, zeros_from
+from rvggt_jax.ops.ordering import ordered_after, zeros_after
 from rvggt_jax.ops.ring import ring_attention
 from rvggt_jax.ops.shards import FrameShards
 
@@ -100,7 +100,7 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
         # equal groups: one loop, one compiled copy of the group's code (an unrolled loop
         # would compile the means, keys and attention once per group)
         heads = len(groups[0])
-        out = zeros_from((b, rows, config.num_heads, config.head_dim), config.compute_dtype, match.sizes)
+        out = zeros_after((b, rows, config.num_heads, config.head_dim), config.compute_dtype, match.sizes)
 
         def step(g, carry):
             x, out = carry
@@ -385,11 +385,11 @@ def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShar
         extra = () if dup is None else ((dup[0], dup[1], bias(dup[2], dup[3], plan.masked)),)
         log_g = bias(keys.sizes, keys.valid, True)
         # Q and K made after V's sums (else they sit through V's sums)
-        return ring_attention(with_dependency(qm, keys.v), with_dependency(keys.k, keys.v), keys.v, log_g, shards,
-                              extra)
+        return ring_attention(ordered_after(qm, keys.v), ordered_after(keys.k, keys.v), keys.v, log_g, shards,
+                              extra, implementation=config.attention)
     log_g = bias(keys.sizes, keys.valid, plan.masked) if plan.size_column else None
     check_shapes(plan, comp, qm.shape[1] - dup, keys.k, log_g, dup, dyn)
-    return attention(qm, keys.k, keys.v, log_g)
+    return attention(qm, keys.k, keys.v, log_g, implementation=config.attention)
 
 
 def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, config, shards: FrameShards,
@@ -398,15 +398,14 @@ def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRo
     out [B, rows (+ n_dup_all), C], each token taking its group's row (over devices, the
     rows travel around the ring), or with `own` ([B, N] from `own_rows`) a protected dst
     its own row (the n_dup_all rows after the merged ones; every device holds them all)."""
-    dtype = config.compute_dtype
+    cfg = layers.BlockConfig.of(config)
     group = share.group
     if not shards.sharded:
         if own is not None:
             group = jnp.where(own >= 0, share.rows + own, group)
-        return layers.block_with_attention(p_block, x, lambda xc, gc: merge_lib.unmerge(out, gc), (group,),
-                                           dtype=dtype, projected=True)
+        return layers.chunked_block(p_block, x, lambda gc: lambda h: merge_lib.unmerge(out, gc), (group,), cfg)
     rows = shards.ring_take(out[:, :share.rows], group)
     if own is not None:
         mine = chunks.take_along(out[:, share.rows:], jnp.maximum(own, 0), axis=1)
         rows = jnp.where((own >= 0)[..., None], mine, rows)
-    return layers.block_with_attention(p_block, x, lambda xc, rc: rc, (rows,), dtype=dtype, projected=True)
+    return layers.chunked_block(p_block, x, lambda rc: lambda h: rc, (rows,), cfg)

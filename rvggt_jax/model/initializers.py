@@ -2,7 +2,7 @@
 
 `param_specs(config)` lists every leaf of the converter's tree (the same paths and
 shapes as `rvggt_jax.weights.converter.expected_param_paths`, derived from the same upstream
-state-dict table `rvggt_jax/weights/shapes.py` and rule table `rvggt_jax/weights/rules.py`) with the
+state-dict table `rvggt_jax/model/params.py` and rule table `rvggt_jax/model/param_rules.py`) with the
 initialiser upstream's PyTorch modules give the tensor it comes from. The Flax modules of
 `rvggt_jax.model.modules` register each leaf with `self.param(name, spec.initializer(), shape)`;
 `rvggt_jax.init_params(config, key)` is `VGGT(config).init(...)` of those registrations.
@@ -93,7 +93,7 @@ def _block(key: jax.Array, kind: str, value: jax.Array, cut: jax.Array) -> jax.A
 
 def draw(spec: InitSpec, key: jax.Array, shape: tuple[int, ...], dtype: Any = jnp.float32) -> jax.Array:
     """One leaf of `shape` drawn per `spec` from `key`. Eagerly and under `jax.jit` the
-    draws are the same up to float rounding (XLA fuses the scaling differently)."""
+    draws are the same up to float rounding (the compiled scaling fuses differently)."""
     if spec.kind in ("zeros", "ones", "constant"):
         v = {"zeros": 0.0, "ones": 1.0}.get(spec.kind, spec.value)
         return jnp.asarray(np.full(shape, v, np.float32)).astype(dtype)  # no per-shape program
@@ -160,9 +160,9 @@ def upstream_init(key: str, shape: tuple[int, ...], weight_shape: tuple[int, ...
 def param_specs(config: VGGTConfig, *, skip_track: bool = False) -> dict[Path, tuple[tuple[int, ...], InitSpec]]:
     """{our path: (converted shape, InitSpec)} for every leaf of the converted tree of
     `config` (in the order of upstream's state dict). The paths and shapes are the
-    converter's own (`rvggt_jax.weights.rules.converted_shapes` over `rvggt_jax.weights.shapes`)."""
-    from rvggt_jax.weights.rules import converted_shapes, find_rule
-    from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+    layout's (`model.param_rules.converted_shapes` over `model.params.upstream_state_dict_shapes`)."""
+    from rvggt_jax.model.param_rules import converted_shapes, find_rule
+    from rvggt_jax.model.params import upstream_state_dict_shapes
 
     upstream = upstream_state_dict_shapes(config, skip_track=skip_track)
     out: dict[Path, tuple[tuple[int, ...], InitSpec]] = {}

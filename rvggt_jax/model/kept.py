@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.bits import Bits16, read_buffer, write_buffer
-from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.bits import HalfBuffer, read_buffer, write_buffer
+from rvggt_jax.ops.ordering import materialize, ordered_after, zeros_after
 
 
 @jax.tree_util.register_pytree_node_class
@@ -29,7 +29,7 @@ class KeptLayer:
     reads them (`frames`, `token`; `array` is the whole layer, a copy).
 
     Each half is a slot of a stacked [K, B, S, P, C] buffer (compute dtype; 16-bit ones as
-    `bits.Bits16`): the frame half in slot `slot`, the global half in `global_slot`
+    `bits.HalfBuffer`): the frame half in slot `slot`, the global half in `global_slot`
     (default the same). The last layer's global half is the aggregator's final residual
     stream itself ([1, B, S, P, C] float32, slot 0), read rounded to `dtype` (the compute
     dtype), the values its slot would have held. `KeptLayer.of(tokens)` wraps a plain
@@ -65,7 +65,7 @@ class KeptLayer:
         if self.dtype is not None:  # (the residual stream, as its slot would hold it)
             halves = [halves[0].astype(jnp.float32), rounded(halves[1], self.dtype)]
         # (the barrier keeps the float32 cast on the slices)
-        return jnp.concatenate(jax.lax.optimization_barrier(halves), axis=-1).astype(jnp.float32)
+        return jnp.concatenate(materialize(halves), axis=-1).astype(jnp.float32)
 
     def _read(self, op, *index) -> jax.Array:
         """op(buffer, slot, *index) on both halves, concatenated along channels, float32."""
@@ -123,7 +123,7 @@ PROJECT_GROUP_BYTES = 64 * 2**20
 @jax.tree_util.register_pytree_node_class
 class ProjectedLayer:
     """A kept layer as its readers' first step made it (`project_layer`): `buf`
-    [B*S, Q, F] in the compute dtype (16-bit ones as `Bits16`), `columns` as in
+    [B*S, Q, F] in the compute dtype (16-bit ones as `HalfBuffer`), `columns` as in
     `Projection`, `batch` = (B, S). `raw` is the layer itself when something else reads it
     too (returned layers), else None."""
 
@@ -173,7 +173,7 @@ class ProjectedLayer:
 def project_layer(layer: KeptLayer, projection: Projection, dtype, clear: bool = True
                   ) -> tuple[jax.Array, KeptLayer]:
     """The readers' first step on every frame of `layer` [B, S, P, 2C] -> ([B*S, Q, F] in
-    `dtype` (16-bit: a `Bits16` buffer), the layer's buffers after it), computed for
+    `dtype` (16-bit: a `HalfBuffer` buffer), the layer's buffers after it), computed for
     groups of frames whose float32 tokens take PROJECT_GROUP_BYTES (the layer's float32
     copy never exists). When the group does not divide B*S, the last group starts before
     the end and recomputes a few frames (the first step is per frame: the same values).
@@ -231,7 +231,7 @@ def _set_frame(buf: jax.Array, x: jax.Array, index) -> jax.Array:
 
 
 def _zero_frame(buf, slot, start):
-    """`_set_frame` with zeros, on a plain or a `Bits16` buffer."""
+    """`_set_frame` with zeros, on a plain or a `HalfBuffer` buffer."""
     index = (jnp.asarray(slot, jnp.int32), jnp.asarray(start, jnp.int32))
     return write_buffer(buf, _set_frame, jnp.zeros(buf.shape[3:], buf.dtype), index)
 
@@ -249,7 +249,7 @@ def _frames_of_slot(count: int):
     flattened B*S frames of slot `slot`, [count, P, C]."""
     def part(buf, slot, start):
         # (buf: float32, or a 16-bit buffer's bits; plain slices, which also carry
-        # the derivatives of `bits.Bits16`)
+        # the derivatives of `bits.HalfBuffer`)
         flat = buf.reshape((buf.shape[0], -1) + buf.shape[3:])  # [K, B*S, P, C]
         # Frames first, then the slot, both dynamic slices (a static slot slice is
         # loop-invariant: XLA would hoist it, cast to float32, out of the heads' loop)
@@ -287,16 +287,16 @@ def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
 
 def kept_buffer(shape: tuple[int, ...], dtype, dep: jax.Array):
     """Zeros for the kept layers' halves [K, B, S, P, C] made from `dep`; 16-bit ones as
-    bits (`bits.Bits16`: the heads slice them in a loop without a copy of the whole)."""
+    bits (`bits.HalfBuffer`: the heads slice them in a loop without a copy of the whole)."""
     if jnp.dtype(dtype).itemsize == 2:
-        return Bits16.zeros_from(shape, dtype, dep)
-    return zeros_from(shape, dtype, dep)
+        return HalfBuffer.zeros_after(shape, dtype, dep)
+    return zeros_after(shape, dtype, dep)
 
 
 def stored(buf) -> jax.Array:
-    """The array holding a kept buffer's values (a `Bits16` buffer's bits, not its shadow,
+    """The array holding a kept buffer's values (a `HalfBuffer` buffer's bits, not its shadow,
     which a forward without derivatives never makes): what to order later work after."""
-    return buf.bits if isinstance(buf, Bits16) else buf
+    return buf.bits if isinstance(buf, HalfBuffer) else buf
 
 
 def write_slot(buf, x: jax.Array, k: jax.Array, dtype):
@@ -304,3 +304,146 @@ def write_slot(buf, x: jax.Array, k: jax.Array, dtype):
     not .at[k].set: the latter is a scatter that XLA lowers with a bounds check, out of
     place: a copy of the kept buffer per step.)"""
     return write_buffer(buf, _set_slot, x.astype(dtype), k)
+
+
+# ---------------------------------------------------------------------------------------
+# The kept layers while the aggregator runs: every buffer decision in one place
+# ---------------------------------------------------------------------------------------
+
+
+@jax.tree_util.register_pytree_node_class
+class KeptLayers:
+    """The buffers the aggregator writes the heads' layers to, and every decision about
+    them: slots, global halves, where the layer loop is cut, what is ordered after what.
+
+    - `frame`, `global_`: [K, B, S, P, C] in the compute dtype (16-bit: `HalfBuffer`);
+      kept layer j owns slot j, any other layer writes the next kept layer's slot
+      (`kept_slots`), so the loop body is one unconditional write.
+    - A kept last layer's global half is the final stream itself: the global buffer has
+      one slot less, and the layers after `writes_global` write no global half.
+    - A projected layer ends its scan: `project` reads its slots before the next layer
+      overwrites them. (Static facts are the pytree's aux data.)"""
+
+    def __init__(self, frame, global_, keep: tuple[int, ...], slots: tuple[int, ...], writes_global: int,
+                 projects: tuple[int, ...], dtype: str):
+        self.frame, self.global_ = frame, global_
+        self.keep, self.slots, self.writes_global = keep, slots, writes_global
+        self.projects, self.dtype = projects, dtype
+
+    @classmethod
+    def start(cls, depth: int, keep, projects, shape: tuple[int, int, int, int], dtype, dep: jax.Array
+              ) -> "KeptLayers":
+        """The empty buffers for `depth` layers of tokens `shape` = (B, S, P, C), keeping
+        `keep` whole and projecting `projects` (no slot of their own unless kept); made
+        after `dep` (after the patch embed: docs/memory_layout.md)."""
+        keep = tuple(sorted(set(keep)))
+        slot, spare = kept_slots(depth, keep)
+        last_is_x = bool(keep) and keep[-1] == depth - 1
+        writes_global = (keep[-2] if len(keep) > 1 else -1) if last_is_x else depth - 1  # up to this layer
+        n_global = len(keep) + spare - int(last_is_x)
+        if not keep:  # (every layer read is projected: no halves to keep)
+            writes_global, n_global = -1, 0
+        full = (len(keep) + spare,) + tuple(shape)
+        frame = kept_buffer(full, dtype, dep)
+        global_ = kept_buffer((n_global,) + full[1:], dtype, jax.tree.leaves(frame)[0]) if n_global else None
+        return cls(frame, global_, keep, tuple(int(k) for k in slot), writes_global, tuple(sorted(projects)),
+                   jnp.dtype(dtype).name)
+
+    def scans(self, runs) -> list[tuple[int, ...]]:
+        """The runs of layers that share a compiled body, cut where the global halves stop
+        and after each projected layer: one `lax.scan` each."""
+        w = self.writes_global
+        groups = [g for run in runs for g in (tuple(i for i in run if i <= w), tuple(i for i in run if i > w)) if g]
+        out = []
+        for run in groups:
+            part = []
+            for i in run:
+                part.append(i)
+                if i in self.projects:
+                    out.append(tuple(part))
+                    part = []
+            if part:
+                out.append(tuple(part))
+        return out
+
+    def slots_of(self, group) -> jax.Array:  # [len(group)] int32: the scan's input
+        return jnp.asarray([self.slots[i] for i in group], jnp.int32)
+
+    def stores_global(self, group) -> bool:  # (a scan is on one side of writes_global)
+        return group[0] <= self.writes_global
+
+    def after_frame_block(self, x: jax.Array, k: jax.Array) -> "KeptLayers":
+        """The frame block's output x [B, S, P, C] written to slot k."""
+        return self._with(frame=write_slot(self.frame, x, k, self.dtype))
+
+    def before_global_block(self, x: jax.Array, p_global, single: bool):
+        """(x, self, p_global) ordered so that the global block, which updates x in place,
+        runs after the frame half's write has read x (else the stream is copied for the
+        write: docs/memory_layout.md). The order comes through the block's weights, which
+        leaves the stream a single buffer; a run of one layer (`single`: no loop, its slot
+        a constant) settles x and the write first."""
+        kept = self
+        if single:
+            x, frame = materialize((x, self.frame))
+            kept = self._with(frame=frame)
+        p_global = jax.tree.map(lambda w: ordered_after(w, stored(kept.frame)), p_global)
+        return x, kept, p_global
+
+    def after_global_block(self, x: jax.Array, k: jax.Array, store: bool) -> "KeptLayers":
+        """The global block's output x [B, S, P, C] written to slot k when `store`."""
+        return self._with(global_=write_slot(self.global_, x, k, self.dtype)) if store else self
+
+    def project(self, i: int, x: jax.Array, projection: Projection, shape) -> tuple["KeptLayers", "ProjectedLayer",
+                                                                                   jax.Array | None]:
+        """Layer i's projection, as its slots hold it at the end of its scan (the next layer
+        overwrites them), with x the stream [B, S*P, C] and `shape` = (B, S, P, C) ->
+        (self after it, the `ProjectedLayer` (its `raw` unset), the value the next scan
+        must start after, or None). A layer past `writes_global` reads its global half
+        from the stream, which the loop only reads."""
+        b, s, p, c = shape
+        k = self.slots[i]
+        if i <= self.writes_global:
+            layer = KeptLayer(self.frame, self.global_, k)
+        else:
+            layer = KeptLayer(self.frame, x.reshape(1, b, s, p, c), k, 0, self.dtype)
+        buf, layer = project_layer(layer, projection, self.dtype, clear=i not in self.keep)
+        kept = self._with(frame=layer.frame_buf, global_=layer.global_buf if i <= self.writes_global else self.global_)
+        # a buffer the loop only reads: the next scan starts after it (through one weight:
+        # a dependency of the stream, x + 0, gets a buffer of its own)
+        after = stored(buf) if (i in self.keep or i > self.writes_global) else None
+        return kept, ProjectedLayer(buf, projection.columns, (b, s)), after
+
+    def outputs(self, x: jax.Array, shape) -> dict[int, KeptLayer]:
+        """{layer: `KeptLayer`} of the kept layers once the loop is done, x the final
+        stream [B, S*P, C]; `shape` = (B, S, P, C)."""
+        out = {i: KeptLayer(self.frame, self.global_, j) for j, i in enumerate(self.keep)}
+        if self.keep and self.keep[-1] > self.writes_global:  # (the last layer: the stream)
+            out[self.keep[-1]] = KeptLayer(self.frame, x.reshape((1,) + tuple(shape)), len(self.keep) - 1, 0,
+                                           self.dtype)
+        return out
+
+    def _with(self, **buffers) -> "KeptLayers":
+        kept = KeptLayers(self.frame, self.global_, self.keep, self.slots, self.writes_global, self.projects,
+                          self.dtype)
+        for name, value in buffers.items():
+            setattr(kept, name, value)
+        return kept
+
+    def tree_flatten(self):
+        return (self.frame, self.global_), (self.keep, self.slots, self.writes_global, self.projects, self.dtype)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(*children, *aux)
+
+
+def weights_after(p, dep: jax.Array | None):
+    """Aggregator weights `p` with the frame blocks' smallest weight computed after `dep`
+    (None: unchanged): the next scan, which takes it, starts after `dep` exists."""
+    if dep is None:
+        return p
+    frame = p["frame_blocks"]
+    leaves, tree = jax.tree.flatten(frame)
+    small = min(range(len(leaves)), key=lambda k: leaves[k].size)
+    leaves[small] = ordered_after(leaves[small], dep)
+    return {**p, "frame_blocks": jax.tree.unflatten(tree, leaves)}

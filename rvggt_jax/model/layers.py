@@ -1,6 +1,6 @@
 """Transformer building blocks as pure functions over parameter dicts.
 
-Parameter leaves follow the converter's conventions (see `rvggt_jax/weights/rules.py`):
+Parameter leaves follow the converter's conventions (see `rvggt_jax/model/param_rules.py`):
 Linear -> {"kernel": [in, out], "bias": [out]}; LayerNorm -> {"scale", "bias"};
 the upstream fused `qkv` Linear is split into {"q", "k", "v"} Linears;
 LayerScale -> {"gamma": [C]}.
@@ -11,6 +11,7 @@ Attention tensors are token-major, `[B, N, H, D]` (the layout of
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -18,10 +19,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.attention import attention
+from rvggt_jax.ops.attention import NEG_BIAS, attention
+from rvggt_jax.ops.ring import ring_attention
+from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.chunks import map_tokens, update_tokens
-from rvggt_jax.ops.ordering import with_dependency, zeros_from
+from rvggt_jax.ops.ordering import ordered_after
 from rvggt_jax.model.params import Params
 
 # Upstream's aggregator, camera head and DPT use torch's LayerNorm default; DINOv2 uses 1e-6.
@@ -49,9 +52,8 @@ def layer_norm(p: Params | None, x: jax.Array, eps: float = TORCH_LN_EPS, dtype:
     the mean of wide rows); the result in `dtype` (default: x's dtype)."""
     out_dtype = x.dtype if dtype is None else dtype
     shape = x.shape
-    # the rows as a [rows, C] matrix (a free reshape, the same values bit for bit): XLA:CPU
-    # fuses the row reductions of the qk-norms' [B, N, H, D] worse than those of a matrix
-    # (`regime`'s forward at 64 frames of the speed layout -3%, docs/benchmarks.md)
+    # the rows as a [rows, C] matrix (a free reshape, the same values bit for bit): the
+    # qk-norms' row reductions run faster so (docs/history/cpu_speed.md)
     x = x.astype(jnp.float32).reshape(-1, shape[-1])
     mean = jnp.mean(x, axis=-1, keepdims=True)
     xc = x - mean
@@ -65,17 +67,9 @@ def layer_norm(p: Params | None, x: jax.Array, eps: float = TORCH_LN_EPS, dtype:
 def gelu(x: jax.Array) -> jax.Array:
     """Exact (erf) GELU, as torch's nn.GELU default: x/2 (1 + erf(x/sqrt(2))), torch's own
     formula, evaluated in float32 (the result in x's dtype). (The tanh form differs by
-    ~1e-3; jax.nn.gelu's exact form goes through erfc and runs ~2x slower on CPU.)
-
-    The constants are rows made from x (`zeros_from`), not scalars: XLA merges equal
-    broadcasts of a scalar, so blocks outside a loop whose MLPs have one shape (the DINO
-    block and the VGGT frame block a compression plan runs once: both [S, P, 4C]) shared
-    them, and XLA:CPU wrote each shared one out in full for their YNNPACK fusions (3 x
-    12.9 MB at 64 frames in the speed layout, ~7 ms of `regime`). Same values, bit for bit."""
+    ~1e-3; jax.nn.gelu's exact form goes through erfc and runs ~2x slower on CPU.)"""
     x32 = x.astype(jnp.float32)
-    z = zeros_from(x.shape[-1:], jnp.float32, x32)
-    half, one, inv_sqrt2 = z + 0.5, z + 1.0, z + np.float32(1.0 / math.sqrt(2.0))
-    return (half * x32 * (one + jax.lax.erf(x32 * inv_sqrt2))).astype(x.dtype)
+    return (0.5 * x32 * (1.0 + jax.lax.erf(x32 * np.float32(1.0 / math.sqrt(2.0))))).astype(x.dtype)
 
 
 def mlp(p: Params, x: jax.Array) -> jax.Array:
@@ -108,8 +102,8 @@ class RopeTables:
 
     A forward pass has two position sets (one frame, all frames) shared by its 48 blocks:
     building the tables once and passing them as `pos` keeps the trigonometry out of the
-    blocks (XLA fuses cos/sin into every consumer, recomputing them per head and block:
-    ~15% of a global block on CPU). The whole sequence's tables (`of_sequence`) are
+    blocks (cos/sin fused into every consumer were recomputed per head and block: ~15%
+    of a global block on CPU). The whole sequence's tables (`of_sequence`) are
     `chunks.Periodic` (one frame's rows): the chunk loops slice them, a loop run in one
     chunk tiles them in its body; `first` and `frame_rows` read them either way."""
 
@@ -131,10 +125,10 @@ class RopeTables:
         """The tables of `frames` frames in a row from one frame's [1, P, 1, D], as
         `chunks.Periodic` arrays (one frame's rows), never tiled outside the blocks: a loop
         over token chunks slices each chunk's rows from the period, and a loop run in one
-        chunk tiles them in its body, where XLA fuses the tiling into the RoPE product.
+        chunk tiles them in its body, fused into the RoPE product.
         (Tiled once per forward, every global block read the [1, frames * P, 1, D] tables
         from memory: at 64 frames of 168 x 224 in the speed layout, `regime`'s forward
-        took 1.7% longer, docs/benchmarks.md; at 1000 frames of VGGT-1B the tiled tables
+        took 1.7% longer, docs/history/cpu_speed.md; at 1000 frames of VGGT-1B the tiled tables
         were 2 x 266 MB.)"""
         n = frame.cos.shape[1] * frames
         return cls(chunks.Periodic(frame.cos, n), chunks.Periodic(frame.sin, n))
@@ -170,9 +164,9 @@ def rope_2d(x: jax.Array, pos: "jax.Array | RopeTables", freq: float | None = No
     x [B, N, H, D]; pos [B|1, N, 2] integer (y, x) positions (with `freq`), or their
     precomputed `RopeTables`."""
     tables = pos if isinstance(pos, RopeTables) else RopeTables.from_positions(pos, x.shape[-1], freq)
-    # (the tables made from x, the same values: constants broadcast to one shape are merged
-    # across the blocks outside a loop, and XLA:CPU writes the merged broadcast out)
-    tables = RopeTables(with_dependency(tables.cos, x), with_dependency(tables.sin, x))
+    # (the tables made after x, the same values: a constant shared by the blocks outside
+    # a loop is otherwise written out whole: docs/memory_layout.md)
+    tables = RopeTables(ordered_after(tables.cos, x), ordered_after(tables.sin, x))
     q = x.shape[-1] // 4
     # rotate-half within each half: (a, b, c, d) quarters -> (-b, a, -d, c)
     rotated = jnp.concatenate([-x[..., q:2 * q], x[..., :q], -x[..., 3 * q:], x[..., 2 * q:3 * q]], axis=-1)
@@ -207,6 +201,66 @@ def attention_qkv(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | Rop
     return tuple(out)
 
 
+@dataclasses.dataclass(frozen=True)
+class BlockConfig:
+    """How a transformer block computes (frozen, hashable): heads, LayerNorm eps, the
+    compute dtype of norms, attention and MLP (None: the residual stream's own, float32
+    in the model), the RoPE frequency for integer positions, the attention kernel by name
+    (`ops.attention.KERNELS`)."""
+
+    num_heads: int
+    eps: float = TORCH_LN_EPS
+    dtype: Any = None
+    rope_freq: float = 100.0
+    kernel: str = "auto"
+
+    @classmethod
+    def of(cls, config) -> "BlockConfig":
+        """The aggregator's blocks under a `VGGTConfig`: its heads, RoPE frequency,
+        compute dtype and attention kernel."""
+        return cls(config.num_heads, dtype=config.compute_dtype, rope_freq=config.rope_freq, kernel=config.attention)
+
+
+def block(p: Params, x: jax.Array, attend, cfg: BlockConfig) -> jax.Array:
+    """Upstream's `Block` (pre-norm, LayerScale) on rows x [..., C] of the residual stream:
+
+        x = x + ls1(attend(norm1(x)))
+        x = x + ls2(mlp(norm2(x)))
+
+    `attend` maps the normalised rows [..., C] (in cfg.dtype) to the attention branch's
+    output rows [..., C], projected (`self_attention`, `attention_to`, or a compressed
+    layer's unmerge). x keeps its dtype; the branches compute in cfg.dtype, as under
+    torch's autocast. Any chunk of rows is a complete block: the callers run it over
+    chunks of the sequence (`sequence_block`, `ops/chunks.py`)."""
+    dtype = x.dtype if cfg.dtype is None else cfg.dtype
+    x = x + layer_scale(p.get("ls1"), attend(layer_norm(p["norm1"], x, cfg.eps, dtype))).astype(x.dtype)
+    h = mlp(p["mlp"], layer_norm(p["norm2"], x, cfg.eps, dtype))
+    return x + layer_scale(p.get("ls2"), h).astype(x.dtype)
+
+
+def project(p: Params, heads: jax.Array) -> jax.Array:
+    """The attention's output projection: heads [..., H, D] -> rows [..., H*D]."""
+    return linear(p["attn"]["proj"], heads.reshape(heads.shape[:-2] + (-1,)))
+
+
+def self_attention(p: Params, cfg: BlockConfig, *tables: jax.Array):
+    """The attention branch of rows attending among themselves: normalised rows
+    [B, r, C] -> [B, r, C], with RoPE from `tables` (cos, sin [1|B, r, 1, D]) or none."""
+    pos = RopeTables(*tables) if tables else None
+    return lambda h: project(p, attention(*attention_qkv(p["attn"], h, cfg.num_heads, pos),
+                                          implementation=cfg.kernel))
+
+
+def attention_to(p: Params, cfg: BlockConfig, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None,
+                 *tables: jax.Array):
+    """The attention branch of a chunk of queries against given keys: normalised rows
+    [B, r, C] (their RoPE rows in `tables`) -> [B, r, C], attending to K/V [B, Nk, H, D]
+    (with `key_bias` [B, Nk])."""
+    pos = RopeTables(*tables) if tables else None
+    return lambda h: project(p, attention(attention_qkv(p["attn"], h, cfg.num_heads, pos, parts="q")[0], k, v,
+                                          key_bias, implementation=cfg.kernel))
+
+
 def block_qkv(p: Params, x: jax.Array, num_heads: int, tables: "RopeTables | None" = None,
                eps: float = TORCH_LN_EPS, dtype: Any = None, parts: str = "qkv") -> tuple[jax.Array, ...]:
     """q, k, v [B, N, H, D] (those in `parts`) in `dtype` of a block's attention from its
@@ -229,107 +283,67 @@ def block_qkv_rows(p: Params, num_heads: int, eps: float, dtype: Any, parts: str
     return one
 
 
-# ---------------------------------------------------------------------------------------
-# The transformer block (written once) and its attention hooks
-# ---------------------------------------------------------------------------------------
-
-
-def block_with_attention(p: Params, x: jax.Array, attend, inputs: tuple = (), *, eps: float = TORCH_LN_EPS,
-                         dtype: Any = None, projected: bool = False, with_aux: bool = False, axis: int = 1,
-                         bytes_per_row: int | None = None, multiple: int = 8):
-    """The pre-norm transformer block with LayerScale, the one copy every block runs (plain,
-    DINO, camera trunk, compressed global): each chunk of rows of the residual stream x
-    [B, N, C] becomes x + ls1(proj(attention)), then + ls2(mlp(norm2(.))).
-
-    The attention is the hook `attend(x_rows, *input_rows)`, given the chunk's rows of x
-    and of `inputs` (each chunked along `axis` like x): it returns the attention output
-    of those rows, heads [..., H, D] (then projected here by `attn.proj`) or, with
-    `projected`, rows [..., C] it projected itself (a merged attention projects its merged
-    rows before unmerging them); with `with_aux`, a pair (output, aux rows), aux stitched
-    along `axis` and returned too. Hooks: `self_attention` (each chunk attends within
-    itself: whole sequences per chunk), `attention_to` (queries of the chunk against given
-    K/V), the unmerge of the merging block (`compression.merged_layer`), the saliency of
-    `patch_embed`.
-
-    x is kept in its own dtype (float32 in the model); norms, attention and MLP compute in
-    `dtype` (default x's): torch's autocast. One in-place pass over chunks of rows
-    (`chunks.update_tokens`; with `with_aux` the results are new arrays, `map_tokens`) of
-    `bytes_per_row` (default: one token's float32 MLP hidden layer per sequence)."""
-    c = x.shape[-1]
-    proj = p["attn"]["proj"]
-    if bytes_per_row is None:
-        bytes_per_row = x.shape[0] * p["mlp"]["fc1"]["kernel"].shape[-1] * 4
-
-    def rows(xc, *ic):
-        out, aux = attend(xc, *ic) if with_aux else (attend(xc, *ic), None)
-        if not projected:
-            out = linear(proj, out.reshape(xc.shape[:2] + (c,)))
-        y = _residual_mlp(p, xc, out, eps, dtype)
-        return (y, aux) if with_aux else y
-
-    if with_aux:
-        return map_tokens(rows, (x, *inputs), axis=axis, bytes_per_row=bytes_per_row, multiple=multiple)
-    return update_tokens(rows, x, inputs, axis=axis, bytes_per_row=bytes_per_row, multiple=multiple)
-
-
-def self_attention(p: Params, num_heads: int, eps: float = TORCH_LN_EPS, dtype: Any = None):
-    """`block_with_attention`'s hook for rows that attend among themselves: (x rows [B, r, C], cos,
-    sin [1|B, r, 1, D] or nothing) -> attention output [B, r, H, D]."""
-    qkv = block_qkv_rows(p, num_heads, eps, dtype)
-    return lambda xc, *tc: attention(*qkv(xc, *tc))
-
-
-def attention_to(p: Params, num_heads: int, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None,
-                 eps: float = TORCH_LN_EPS, dtype: Any = None):
-    """`block_with_attention`'s hook for the query side of a long sequence: each chunk's Q (norm1,
-    projection, qk-norm, RoPE with its rows of cos, sin) attends to the given K/V
-    [B, Nk, H, D] (with `key_bias` [B, Nk])."""
-    q_of = block_qkv_rows(p, num_heads, eps, dtype, "q")
-    return lambda xc, *tc: attention(q_of(xc, *tc)[0], k, v, key_bias)
-
-
-def block(p: Params, x: jax.Array, num_heads: int, pos: "jax.Array | RopeTables | None" = None,
-          rope_freq: float | None = None, eps: float = TORCH_LN_EPS, dtype: Any = None) -> jax.Array:
-    """Pre-norm transformer block with LayerScale over B sequences: x [B, N, C] ->
-    [B, N, C], attention within each sequence (`block_with_attention`).
-
-    x is the residual stream (kept in its own dtype, float32 in the model); attention and
-    MLP compute in `dtype` (default x's): the mixed precision of torch's autocast.
-    pos: RoPE tables [1|B, N, 1, D] or integer positions [1|B, N, 2] (with `rope_freq`),
-    or None.
-
-    The block is one in-place pass over x. Short sequences (frames, DINO images): whole
-    sequences per chunk, each chunk a complete block. Long sequences (the global blocks):
-    K and V of the whole sequence first, then chunks of queries, each attending to all
-    keys and finishing its rows (projection, residual, MLP). Only K and V ever exist for
-    the whole sequence."""
-    b, n, c = x.shape
-    dtype = x.dtype if dtype is None else dtype
-    if pos is not None and not isinstance(pos, RopeTables):
-        pos = RopeTables.from_positions(pos, c // num_heads, rope_freq)
+def chunked_block(p: Params, x: jax.Array, branch, inputs: tuple, cfg: BlockConfig) -> jax.Array:
+    """`block` over chunks of tokens of a long sequence x [B, N, C], in place: chunk i's
+    attention branch is `branch(*its rows of inputs)` (inputs chunked along tokens like
+    x; e.g. its RoPE rows, or its rows of an attention computed beforehand)."""
     hidden = p["mlp"]["fc1"]["kernel"].shape[-1]
+    return update_tokens(lambda xc, *ic: block(p, xc, branch(*ic), cfg), x, inputs,
+                         bytes_per_row=x.shape[0] * hidden * 4)
+
+
+def sequence_block(p: Params, x: jax.Array, pos: "jax.Array | RopeTables | None", cfg: BlockConfig) -> jax.Array:
+    """`block` over B sequences x [B, N, C] -> [B, N, C], each token attending within its
+    sequence; pos: RoPE tables [1|B, N, 1, D], integer positions [1|B, N, 2], or None.
+
+    One in-place pass over the residual stream (`chunks.update_tokens`):
+    - short sequences (frames, DINO images, the camera trunk): whole sequences per chunk;
+    - long ones (a dense global block): K and V of the whole sequence first, then chunks
+      of queries against all keys, each chunk finishing its rows (projection, residual,
+      MLP). Only K and V ever exist for the whole sequence."""
+    b, n, c = x.shape
+    if pos is not None and not isinstance(pos, RopeTables):
+        pos = RopeTables.from_positions(pos, c // cfg.num_heads, cfg.rope_freq)
     tables = () if pos is None else (pos.cos, pos.sin)
-    per_sequence = n * hidden * 4
+    per_sequence = n * p["mlp"]["fc1"]["kernel"].shape[-1] * 4  # one sequence's MLP hidden layer, float32
     if per_sequence <= chunks.TOKEN_CHUNK_BYTES:
-        whole = dict(eps=eps, dtype=dtype, axis=0, bytes_per_row=per_sequence, multiple=1)
-        attend = self_attention(p, num_heads, eps, dtype)
         tables = tuple(map(chunks.whole, tables))
-        if tables and tables[0].shape[0] != 1:  # per-sequence positions: chunk them too
-            return block_with_attention(p, x, attend, tables, **whole)
-        return block_with_attention(p, x, lambda xc: attend(xc, *tables), **whole)
-
-    x, (k, v) = chunks.map_tokens_through(block_qkv_rows(p, num_heads, eps, dtype, "kv"), x, tables,
+        if tables and tables[0].shape[0] == 1:  # shared positions: every chunk takes them whole
+            shared = tables
+            return update_tokens(lambda xc: block(p, xc, self_attention(p, cfg, *shared), cfg), x, axis=0,
+                                 bytes_per_row=per_sequence, multiple=1)
+        return update_tokens(lambda xc, *tc: block(p, xc, self_attention(p, cfg, *tc), cfg), x, tables, axis=0,
+                             bytes_per_row=per_sequence, multiple=1)
+    dtype = x.dtype if cfg.dtype is None else cfg.dtype
+    x, (k, v) = chunks.map_tokens_through(block_qkv_rows(p, cfg.num_heads, cfg.eps, dtype, "kv"), x, tables,
                                           bytes_per_row=b * c * 4 * 2 + c * 4)
-    return block_with_attention(p, x, attention_to(p, num_heads, k, v, None, eps, dtype), tables, eps=eps, dtype=dtype)
+    return chunked_block(p, x, lambda *tc: attention_to(p, cfg, k, v, None, *tc), tables, cfg)
 
 
-def _residual_mlp(p: Params, x: jax.Array, attn_rows: jax.Array, eps: float = TORCH_LN_EPS, dtype: Any = None
-                 ) -> jax.Array:
-    """x + ls1(attn_rows), then + ls2(mlp(norm2(.))): rows of the residual stream x
-    [..., C] and the attention branch's (projected) output [..., C]."""
-    dtype = x.dtype if dtype is None else dtype
-    x = x + layer_scale(p.get("ls1"), attn_rows).astype(x.dtype)
-    return x + layer_scale(p.get("ls2"), mlp(p["mlp"], layer_norm(p["norm2"], x, eps, dtype))).astype(x.dtype)
+def dense_global_block(p_block: Params, x: jax.Array, pos, config, shards: FrameShards | None = None,
+                       per_frame: int = 0) -> jax.Array:
+    """Upstream's global block: `sequence_block` over the whole sequence, each token
+    attending to every token of every frame (RegimeVGGT's compressed global blocks are
+    `rvggt_jax.compression.global_block`). x [B, N, C] (N = S * per_frame tokens of this device's
+    frames); pos: the sequence's RoPE tables [1, N, 1, D] (or integer positions
+    [1, N, 2]); config: the `VGGTConfig` (heads, RoPE, compute dtype). Split over devices
+    (`shards`), its queries attend to every device's keys around the ring; padding frames
+    are masked."""
+    heads, dtype = config.num_heads, config.compute_dtype
+    cfg = BlockConfig.of(config)
+    if shards is None or not shards.sharded:
+        return sequence_block(p_block, x, pos, cfg)
+    b, n, c = x.shape
+    if not isinstance(pos, RopeTables):
+        pos = RopeTables.from_positions(pos, c // heads, config.rope_freq)
+    q, k, v = block_qkv(p_block, x, heads, pos, dtype=dtype)
+    mask = None
+    if shards.padded > shards.frames:
+        real = shards.offset(per_frame) + jnp.arange(n) < shards.frames * per_frame
+        mask = jnp.broadcast_to(jnp.where(real, 0.0, NEG_BIAS).astype(jnp.float32), (b, n))
+    out = ring_attention(q, k, v, mask, shards, implementation=config.attention)
+    # the block around the ring's output rows
+    return chunked_block(p_block, x, lambda oc: lambda h: project(p_block, oc), (out,), cfg)
 
 
 def select_block(blocks: Params, indices, i: jax.Array) -> Params:
@@ -344,14 +358,13 @@ def select_block(blocks: Params, indices, i: jax.Array) -> Params:
     return jax.lax.switch(i, [lambda j=j: blocks[str(j)] for j in indices])
 
 
-def block_stack(blocks: Params, indices, x: jax.Array, num_heads: int,
-                pos: "jax.Array | RopeTables | None" = None, rope_freq: float | None = None,
-                eps: float = TORCH_LN_EPS, dtype: Any = None, remat: Any = None) -> jax.Array:
+def block_stack(blocks: Params, indices, x: jax.Array, pos: "jax.Array | RopeTables | None", cfg: BlockConfig,
+                remat: Any = None) -> jax.Array:
     """Apply numbered blocks `indices` (in order) with `lax.scan`; `remat`: how each block
     runs in a training step, a wrapper such as `jax.checkpoint` (`model.remat.checkpoint`
     under `VGGTConfig.remat`), or None."""
     def step(h, i):
-        return block(select_block(blocks, indices, i), h, num_heads, pos, rope_freq, eps, dtype), None
+        return sequence_block(select_block(blocks, indices, i), h, pos, cfg), None
 
     if remat is not None:
         step = remat(step)

@@ -118,7 +118,9 @@ class Aggregator(_Part):
 
     def __call__(self, images: jax.Array, layers: Sequence[int] | None = None) -> dict[int, jax.Array]:
         from rvggt_jax.model.aggregator import aggregator_forward
-        from rvggt_jax.model.forward import InputError, check_images, config_scope
+        from rvggt_jax.errors import InputError
+        from rvggt_jax.model.forward import config_scope
+        from rvggt_jax.model.inputs import check_images
 
         config = self.config.validate()
         p = self.tree()

@@ -124,9 +124,9 @@ def unit_images(images: jax.Array) -> jax.Array:
     float32, the same division upstream's ToTensor (and `load_images`) does, so a uint8
     input gives bit for bit the outputs of its float32 form."""
     if images.dtype == jnp.uint8:
-        # A table of the 256 quotients, divided on the host: XLA rewrites a division by
-        # a constant (or a broadcast scalar) into a multiplication by its reciprocal,
-        # which rounds 1 in ~3 values differently from the division
+        # a table of the 256 quotients, divided on the host: a compiled division by a
+        # constant becomes a multiplication by its reciprocal, which rounds 1 in ~3
+        # values differently
         return jnp.asarray(UNIT_OF_UINT8)[images]
     return images
 
@@ -137,8 +137,8 @@ def embed_images(p: Params, images: jax.Array, config: VGGTConfig) -> jax.Array:
 
     A chunk of whole images at a time, written into the token buffer: the normalised
     images, their patch matrix and the unpadded patch tokens exist for one chunk only.
-    (Whole, XLA:TPU lays the patch matrix out with its 3 channels minor, padded to a
-    tile: 11 GiB at 1000 frames of 392 x 518.)"""
+    (Whole, a TPU lays the patch matrix out with its 3 channels minor, padded to a tile:
+    11 GiB at 1000 frames of 392 x 518.)"""
     dino = config.dino
     dtype = config.compute_dtype
     ps = config.patch_size
@@ -181,22 +181,27 @@ def dino_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
     num_prefix = 1 + p["register_tokens"].shape[1]
 
     depth = dino.depth
+    cfg = layers.BlockConfig(dino.num_heads, eps, dtype, kernel=config.attention)
     if depth > 1:
-        x = layers.block_stack(p["blocks"], range(depth - 1), x, dino.num_heads, eps=eps, dtype=dtype,
+        x = layers.block_stack(p["blocks"], range(depth - 1), x, None, cfg,
                                remat=lambda f: remat.checkpoint(f, config, "block"))
 
-    # The last block's attention hook also returns the saliency, read off the q and k it
-    # computes anyway; whole images per chunk, like every block.
+    # The last block also gives the saliency, read off the q and k its attention computes
+    # anyway; whole images per chunk, like every block.
     blk = p["blocks"][str(depth - 1)]
-    qkv = layers.block_qkv_rows(blk, dino.num_heads, eps, dtype)
 
-    def attend_with_saliency(xc):
-        q, k, v = qkv(xc)
-        return attention(q, k, v), cls_saliency(q, k, num_prefix)
+    def last_block(xc):
+        saliency = []  # (the branch's second result, from the same trace)
+
+        def attend(h):
+            q, k, v = layers.attention_qkv(blk["attn"], h, dino.num_heads)
+            saliency.append(cls_saliency(q, k, num_prefix))
+            return layers.project(blk, attention(q, k, v, implementation=cfg.kernel))
+
+        return layers.block(blk, xc, attend, cfg), saliency[0]
 
     hidden = blk["mlp"]["fc1"]["kernel"].shape[-1]
-    x, saliency = layers.block_with_attention(blk, x, attend_with_saliency, eps=eps, dtype=dtype, with_aux=True,
-                                              axis=0, bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
+    x, saliency = chunks.map_tokens(last_block, (x,), axis=0, bytes_per_row=x.shape[1] * hidden * 4, multiple=1)
 
     c = x.shape[-1]
     x = update_tokens(lambda xc: layers.layer_norm(p["norm"], xc, eps, jnp.float32), x.reshape(1, -1, c),
@@ -213,7 +218,7 @@ def patch_embed(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.A
 
 
 def patch_embed_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, int, jax.Array]:
-    """images [B, S, 3, H, W] (float in [0, 1] or uint8, `forward.check_images`) ->
+    """images [B, S, 3, H, W] (float in [0, 1] or uint8, `inputs.check_images`) ->
     (DINO tokens [B*S, 1 + R + h*w, C] with the patch tokens after the prefix of 1 + R,
     the prefix length, Psi [B, S, h*w])."""
     b, s, c, hh, ww = images.shape

@@ -17,7 +17,7 @@
               recomputed, about 0.8 GiB more per block at 24 frames of 518 x 518
               (VGGT-1B, everything trained, H200 plan: 84.8 GiB, "full" 28.8).
 
-Every checkpoint also keeps the scalar zeros `ops.ordering.with_dependency` orders work
+Every checkpoint also keeps the scalar zeros `ops.ordering.ordered_after` orders work
 with (named `ORDER_NAME`): recomputed, each would need the array it was made from, and
 the aggregator's layers would keep their kept-layer buffer (258 MB at 24 frames of
 518 x 518) per layer.

@@ -24,11 +24,12 @@ a module of `ops/kernels/` (the names: `kernels/names.py`):
                logits: for checks, not long sequences).
   "tpu_flash"  `kernels/tpu_flash.py`: the Pallas TPU flash kernel, the bias folded in.
 
-A forward runs under `kernel_scope(config.attention)`, which sets the kernel of every
-attention call inside it without threading a name through every layer; an explicit
-`implementation` wins. "auto" includes a branch only for the platforms this installation
-can compile for (cuDNN when JAX's CUDA plugin and cuDNN are installed, the TPU kernel when
-libtpu is): a CPU-only install traces the blocked kernel alone.
+The name is data: `VGGTConfig.attention` reaches every aggregator attention through
+`layers.BlockConfig.kernel` (and the compressed layers' config); the float32 heads take
+"auto". `KERNELS_BY_NAME` is the table, `kernel_for` resolves "auto" for a compile target.
+"auto" includes a branch only for the platforms this installation can compile for (cuDNN
+when JAX's CUDA plugin and cuDNN are installed, the TPU kernel when libtpu is): a CPU-only
+install traces the blocked kernel alone.
 
 Precision: q, k, v in the compute dtype (float32 or bfloat16); logits, softmax
 statistics and the value accumulation in float32; the result in q's dtype.
@@ -43,19 +44,16 @@ log-sum-exp's gradient).
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import functools
 import importlib.util
 import math
 import warnings
-from typing import Any, Iterator
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.bits import on_cpu
 from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
 from rvggt_jax.ops.kernels.fused import (CUDNN_MAX_HEAD_DIM, cudnn_lse_available, fused_attention,
@@ -70,9 +68,6 @@ IMPLEMENTATIONS = KERNELS
 # and, being finite, a row whose keys are all removed can never turn into NaN.
 NEG_BIAS = -1.0e4
 
-_KERNEL = contextvars.ContextVar("rvggt_attention_kernel", default="auto")
-
-
 def check_kernel(name: str, dtype: Any = None) -> str:
     """`name` if it is a kernel (and takes `dtype`, when given), else a ValueError naming
     the choices."""
@@ -82,21 +77,6 @@ def check_kernel(name: str, dtype: Any = None) -> str:
         raise ValueError(f"the {name!r} attention kernel takes bfloat16/float16 only; got {jnp.dtype(dtype).name} "
                          f"(for float32 use 'auto' or 'blocked'; choices: {KERNELS})")
     return name
-
-
-@contextlib.contextmanager
-def kernel_scope(name: str) -> Iterator[None]:
-    """Every `attention` traced inside takes the kernel `name` (unless it names its own)."""
-    token = _KERNEL.set(check_kernel(name))
-    try:
-        yield
-    finally:
-        _KERNEL.reset(token)
-
-
-def current_kernel() -> str:
-    """The kernel `attention` takes here: the innermost `kernel_scope`'s, else "auto"."""
-    return _KERNEL.get()
 
 
 def kernel_for(platform: str, dtype: Any, head_dim: int) -> str:
@@ -128,33 +108,26 @@ def compilable_platforms() -> tuple[str, ...]:
 
 
 def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None, *,
-              scale: float | None = None, implementation: str | None = None,
+              scale: float | None = None, implementation: str = "auto",
               block_bytes: int | None = None) -> jax.Array:
     """softmax(q k^T * scale + key_bias) v over tokens.
 
     q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv]; key_bias None or [B, Nk] (added
     to every query's logits; NEG_BIAS removes a key). Returns [B, Nq, H, Dv] in q's
-    dtype. `scale` defaults to 1/sqrt(D); `implementation` to `current_kernel()`.
+    dtype. `scale` defaults to 1/sqrt(D); `implementation` names the kernel (`KERNELS`).
     """
-    implementation = _requested(implementation, q, k, v, key_bias)
+    _check(implementation, q, k, v, key_bias)
     scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
     bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
     block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
-    return _dispatch(implementation, q, lambda name: functools.partial(_run, name, q, k, v, bias32, scale,
-                                                                       block_bytes))
+    return _dispatch(implementation, q, lambda name: functools.partial(
+        KERNELS_BY_NAME[name], q, k, v, bias32, scale, block_bytes))
 
 
-def _requested(implementation: str | None, q, k, v, key_bias) -> str:
-    """The kernel name a call asks for (its own, else the scope's), checked with the
-    operands."""
-    if implementation is None:
-        implementation = current_kernel()
-        # a scope's 16-bit-only kernel is the aggregator's; float32 attention (the heads) takes "auto"
-        if implementation in HALF_ONLY and not _is_half(q.dtype):
-            implementation = "auto"
-    check_kernel(implementation)
+def _check(implementation: str, q, k, v, key_bias) -> None:
+    """The kernel name (for these operands' dtype) and the operands' shapes."""
+    check_kernel(implementation, q.dtype)
     _check_operands(q, k, v, key_bias)
-    return implementation
 
 
 def _dispatch(implementation: str, q: jax.Array, run):
@@ -175,23 +148,23 @@ def _dispatch(implementation: str, q: jax.Array, run):
 
 def attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
                        block_bytes: int | None = None, out_dtype: Any = None, *,
-                       implementation: str | None = None) -> tuple[jax.Array, jax.Array]:
+                       implementation: str = "auto") -> tuple[jax.Array, jax.Array]:
     """(attention [B, Nq, H, Dv] in `out_dtype` (default q's), the log-sum-exp of every
     query's logits [B, Nq, H] float32): what ring attention folds partial results with.
-    The kernel is chosen as in `attention` (`implementation`, else the scope's, else
-    "auto"), each in its log-sum-exp form: the blocked kernel's own; cuDNN's statistics
-    (`kernels/fused.py`: JAX's cuDNN rules under a VJP that takes the log-sum-exp's
-    cotangent); the Pallas TPU kernel's (`kernels/tpu_flash.py`, the same for its
-    backward kernels). Differentiable in both outputs."""
-    implementation = _requested(implementation, q, k, v, key_bias)
+    The kernel is chosen as in `attention`, each in its log-sum-exp form: the blocked
+    kernel's own; cuDNN's statistics (`kernels/fused.py`: JAX's cuDNN rules under a VJP
+    that takes the log-sum-exp's cotangent); the Pallas TPU kernel's
+    (`kernels/tpu_flash.py`, the same for its backward kernels). Differentiable in both
+    outputs."""
+    _check(implementation, q, k, v, key_bias)
     block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
     bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
     out_dtype = q.dtype if out_dtype is None else out_dtype
-    return _dispatch(implementation, q, lambda name: functools.partial(_run_with_lse, name, q, k, v, bias32,
-                                                                       float(scale), block_bytes, out_dtype))
+    return _dispatch(implementation, q, lambda name: functools.partial(
+        _with_lse, name, q, k, v, bias32, float(scale), block_bytes, out_dtype))
 
 
-def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, out_dtype):
+def _with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, out_dtype):
     """Kernel `name`'s (attention in `out_dtype`, lse) on checked operands. The
     accelerator kernels' log-sum-exp forms call JAX-private functions: on a JAX without
     them, the blocked kernel (memory bounded, slower), with a warning."""
@@ -200,12 +173,7 @@ def _run_with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, ou
                       "log-sum-exp form (written against JAX 0.10): ring attention takes the blocked kernel",
                       RuntimeWarning, stacklevel=3)
         name = "blocked"
-    if name == "blocked":
-        out, lse = _blocked(q, k, v, bias32, scale, block_bytes, out_dtype)
-    elif name == "tpu_flash":
-        out, lse = tpu_flash_attention_with_lse(q, k, v, bias32, scale, NEG_BIAS)
-    else:
-        out, lse = fused_attention_with_lse(q, k, v, bias32, scale, name, NEG_BIAS)
+    out, lse = KERNELS_WITH_LSE_BY_NAME[name](q, k, v, bias32, scale, block_bytes, out_dtype)
     return out.astype(out_dtype), lse
 
 
@@ -214,20 +182,30 @@ def _lse_available(name: str) -> bool:
     return tpu_lse_available() if name == "tpu_flash" else name == "xla" or cudnn_lse_available()
 
 
-def _run(name: str, q, k, v, bias32, scale: float, block_bytes: int) -> jax.Array:
-    """Kernel `name` on checked operands (see `attention`)."""
-    if name == "blocked":
-        return _blocked(q, k, v, bias32, scale, block_bytes)[0].astype(q.dtype)
-    if name == "tpu_flash":
-        return tpu_flash_attention(q, k, v, bias32, scale, NEG_BIAS)
-    return fused_attention(q, k, v, bias32, scale, name, NEG_BIAS)
-
-
 def _blocked(q, k, v, bias32, scale: float, block_bytes: int, out_dtype: Any = None):
     """The blocked kernel's (out, lse), its 16-bit operands held as bits only in a program
-    compiled for a CPU (XLA:CPU's workaround; `blocked_attention`)."""
-    return on_cpu(lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype),
-                  lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=False))
+    compiled for a CPU (`blocked_attention`; the branch is chosen when the program is
+    lowered for its platform, as `bits.on_cpu` does)."""
+    return jax.lax.platform_dependent(
+        cpu=lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype),
+        default=lambda: blocked_attention(q, k, v, bias32, scale, block_bytes, out_dtype, bits=False))
+
+
+# Each kernel by name, on checked operands (q, k, v, the float32 key bias or None, scale,
+# the blocked kernel's logits block bytes): the attention in q's dtype ...
+KERNELS_BY_NAME = {
+    "blocked": lambda q, k, v, b, scale, bb: _blocked(q, k, v, b, scale, bb)[0].astype(q.dtype),
+    "cudnn": lambda q, k, v, b, scale, bb: fused_attention(q, k, v, b, scale, "cudnn", NEG_BIAS),
+    "xla": lambda q, k, v, b, scale, bb: fused_attention(q, k, v, b, scale, "xla", NEG_BIAS),
+    "tpu_flash": lambda q, k, v, b, scale, bb: tpu_flash_attention(q, k, v, b, scale, NEG_BIAS),
+}
+# ... and with its log-sum-exp (plus the output dtype): (out, lse [B, Nq, H] float32)
+KERNELS_WITH_LSE_BY_NAME = {
+    "blocked": lambda q, k, v, b, scale, bb, dt: _blocked(q, k, v, b, scale, bb, dt),
+    "cudnn": lambda q, k, v, b, scale, bb, dt: fused_attention_with_lse(q, k, v, b, scale, "cudnn", NEG_BIAS),
+    "xla": lambda q, k, v, b, scale, bb, dt: fused_attention_with_lse(q, k, v, b, scale, "xla", NEG_BIAS),
+    "tpu_flash": lambda q, k, v, b, scale, bb, dt: tpu_flash_attention_with_lse(q, k, v, b, scale, NEG_BIAS),
+}
 
 
 def _is_half(dtype: Any) -> bool:

@@ -8,14 +8,14 @@ is exact and converts only what is used. Why and what it saves: docs/memory_layo
     on_cpu(cpu, other)        cpu() when compiling for a CPU, other() for any other platform
     as_bits(op, x, *index)    op (a slice, gather or move of x) applied to x's bits
     moved(op, x, *index)      as_bits for 16-bit floats compiled for a CPU, op itself otherwise
-    Bits16                    a 16-bit buffer held as bits (the kept layers, the blocked
+    HalfBuffer                    a 16-bit buffer held as bits (the kept layers, the blocked
                               kernel's K/V on a CPU)
-    read_buffer(buf, op, ...) op on a plain array or a `Bits16` buffer
+    read_buffer(buf, op, ...) op on a plain array or a `HalfBuffer` buffer
     write_buffer(buf, op, x, index)  a dynamic update of either
 
 GPUs and TPUs slice, gather and move 16-bit floats natively, so the ops take the plain
 form there (`on_cpu`: the choice is made when the program is lowered for its platform,
-not from the host's default backend). The kept layers' buffer stays `Bits16` on every
+not from the host's default backend). The kept layers' buffer stays `HalfBuffer` on every
 platform: its type is fixed when the program is traced, before the platform is known,
 and a bit view costs nothing on an accelerator (it fuses into the slice reading it).
 """
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.ordering import zeros_after
 
 
 def is_16bit_float(x: jax.Array) -> bool:
@@ -70,7 +70,7 @@ def moved(op, x: jax.Array, *index) -> jax.Array:
 
 
 @jax.tree_util.register_pytree_node_class
-class Bits16:
+class HalfBuffer:
     """A 16-bit float buffer held as its uint16 bits, for buffers a loop slices: a bit
     view made at the slice would be hoisted out of the loop as a copy of the whole buffer.
 
@@ -82,11 +82,11 @@ class Bits16:
         self.bits, self.shadow = bits, shadow
 
     @classmethod
-    def zeros_from(cls, shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> "Bits16":
-        return cls(zeros_from(shape, jnp.uint16, dep), zeros_from(shape, dtype, dep))
+    def zeros_after(cls, shape: tuple[int, ...], dtype: Any, dep: jax.Array) -> "HalfBuffer":
+        return cls(zeros_after(shape, jnp.uint16, dep), zeros_after(shape, dtype, dep))
 
     @classmethod
-    def of(cls, x: jax.Array) -> "Bits16":
+    def of(cls, x: jax.Array) -> "HalfBuffer":
         """x (16-bit floats) as its bits, x itself the shadow (its derivatives)."""
         return cls(jax.lax.bitcast_convert_type(jax.lax.stop_gradient(x), jnp.uint16), x)
 
@@ -98,12 +98,12 @@ class Bits16:
     def dtype(self):
         return self.shadow.dtype
 
-    def update(self, op, x: jax.Array, index) -> "Bits16":
+    def update(self, op, x: jax.Array, index) -> "HalfBuffer":
         """op(buffer, x, index) (a lax dynamic update: linear in buffer and x), x cast to
         the dtype."""
-        return Bits16(*_store_bits(op, self.bits, self.shadow, x.astype(self.dtype), index))
+        return HalfBuffer(*_store_bits(op, self.bits, self.shadow, x.astype(self.dtype), index))
 
-    def update_index(self, x: jax.Array, index) -> "Bits16":
+    def update_index(self, x: jax.Array, index) -> "HalfBuffer":
         """`lax.dynamic_update_index_in_dim(buffer, x, index, 0)` (x cast to the dtype)."""
         return self.update(_update_index, x, index)
 
@@ -119,17 +119,17 @@ class Bits16:
         return cls(*children)
 
 
-def read_buffer(buf: "jax.Array | Bits16", op, *index) -> jax.Array:
-    """op(buf, *index) for a plain array or a `Bits16` buffer; op a plain lax slicing op
-    (for `Bits16` it is applied to the bits and to the tangents)."""
-    return buf.read(op, *index) if isinstance(buf, Bits16) else op(buf, *index)
+def read_buffer(buf: "jax.Array | HalfBuffer", op, *index) -> jax.Array:
+    """op(buf, *index) for a plain array or a `HalfBuffer` buffer; op a plain lax slicing op
+    (for `HalfBuffer` it is applied to the bits and to the tangents)."""
+    return buf.read(op, *index) if isinstance(buf, HalfBuffer) else op(buf, *index)
 
 
-def write_buffer(buf: "jax.Array | Bits16", op, x: jax.Array, index) -> "jax.Array | Bits16":
-    """op(buf, x, index) for a plain array or a `Bits16` buffer, x cast to the buffer's
-    dtype; op a lax dynamic update (for `Bits16` applied to the bits and to the
+def write_buffer(buf: "jax.Array | HalfBuffer", op, x: jax.Array, index) -> "jax.Array | HalfBuffer":
+    """op(buf, x, index) for a plain array or a `HalfBuffer` buffer, x cast to the buffer's
+    dtype; op a lax dynamic update (for `HalfBuffer` applied to the bits and to the
     tangents)."""
-    return buf.update(op, x, index) if isinstance(buf, Bits16) else op(buf, x.astype(buf.dtype), index)
+    return buf.update(op, x, index) if isinstance(buf, HalfBuffer) else op(buf, x.astype(buf.dtype), index)
 
 
 def _update_index(buf, x, index):

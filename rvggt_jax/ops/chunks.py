@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from rvggt_jax.ops.bits import moved
-from rvggt_jax.ops.ordering import with_dependency, zeros_from
+from rvggt_jax.ops.ordering import ordered_after, zeros_after
 
 # Bytes of the widest per-token intermediate (the MLP hidden layer [rows, 4C] in float32)
 # computed at once: longer sequences run over chunks of tokens of this size.
@@ -195,7 +195,7 @@ def fold_tokens_through(step, x: jax.Array, acc, inputs: tuple, n: int, rows: in
         xs, a = carry
         xc = dynamic_slice(xs, i * rows, rows, 1)
         a = step(a, xc, *[dynamic_slice(t, i * rows, rows, 1) for t in inputs])
-        return jax.lax.dynamic_update_slice_in_dim(xs, with_dependency(xc, a), i * rows, 1), a
+        return jax.lax.dynamic_update_slice_in_dim(xs, ordered_after(xc, a), i * rows, 1), a
 
     x, acc = jax.lax.fori_loop(0, count, body, (x, acc))
     if count * rows < n:
@@ -209,7 +209,7 @@ def _zero_results(fn, chunk_inputs: list, n: int, axis: int, dep: jax.Array):
     def full(o):
         shape = list(o.shape)
         shape[axis] = n
-        return zeros_from(tuple(shape), o.dtype, dep)
+        return zeros_after(tuple(shape), o.dtype, dep)
 
     return jax.tree.map(full, jax.eval_shape(fn, *chunk_inputs))
 
@@ -246,7 +246,7 @@ def map_tokens_through(fn, x: jax.Array, inputs: tuple = (), axis: int = 1, rows
 
     def both(xc, *c):
         out = fn(xc, *c)
-        return with_dependency(xc, out), out
+        return ordered_after(xc, out), out
 
     return _chunk_loop(both, (x, outs), inputs, n, axis, rows, multiple, lambda a: a[0])
 

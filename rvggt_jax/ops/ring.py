@@ -15,11 +15,12 @@ from rvggt_jax.ops.shards import FrameShards
 
 def ring_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, shards: FrameShards,
                    extra: tuple = (), *, scale: float | None = None,
-                   block_bytes: int | None = None) -> jax.Array:
+                   block_bytes: int | None = None, implementation: str = "auto") -> jax.Array:
     """`attention` of this device's queries to keys split over devices, without ever
     holding more than two devices' keys: q [B, Nq, H, D]; k, v [B, Nk, H, D] and
     key_bias [B, Nk] (or None) this device's share of the keys; `extra`: (k, v, bias)
-    triples every device attends to as they are (replicated keys). Returns
+    triples every device attends to as they are (replicated keys); `implementation`: the
+    kernel (`ops.attention`) of each share's attention. Returns
     [B, Nq, H, Dv] in q's dtype.
 
     The shares travel around the devices (`FrameShards.ring_shift`, a collective permute
@@ -30,7 +31,7 @@ def ring_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array
     scale = 1.0 / math.sqrt(d) if scale is None else float(scale)
 
     def part(kk, vv, bb):
-        return attention_with_lse(q, kk, vv, bb, scale, block_bytes, jnp.float32)
+        return attention_with_lse(q, kk, vv, bb, scale, block_bytes, jnp.float32, implementation=implementation)
 
     def fold(acc, new):
         (o, lse), (o2, lse2) = acc, new

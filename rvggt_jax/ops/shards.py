@@ -27,7 +27,7 @@ import numpy as np
 
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.bits import moved  # (collectives that only move values: 16-bit floats as bits)
-from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.ordering import zeros_after
 
 FRAMES_AXIS = "frames"
 
@@ -211,7 +211,7 @@ class FrameShards:
             blk = self.ring_shift(blk)
             return blk, take((d - t) % n, blk, acc)
 
-        first = take(d, blocks, zeros_from(idx.shape + blocks.shape[2:], blocks.dtype, blocks))
+        first = take(d, blocks, zeros_after(idx.shape + blocks.shape[2:], blocks.dtype, blocks))
         return jax.lax.fori_loop(1, n, step, (blocks, first))[1]
 
     def share(self, n: int) -> int:

@@ -24,7 +24,8 @@ from jax.sharding import PartitionSpec as P
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.ops.shards import FRAMES_AXIS, FrameShards
 from rvggt_jax.model.layers import Params
-from rvggt_jax.model.forward import check_inputs, forward_frames
+from rvggt_jax.model.forward import forward_frames
+from rvggt_jax.model.inputs import check_inputs
 
 
 def frames_mesh(devices: int | None = None) -> Mesh:

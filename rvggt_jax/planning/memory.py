@@ -41,7 +41,7 @@ class MemoryReport:
     a chip fits its HBM (`compiler_checked`): XLA:TPU's memory analysis counts more
     temporaries than its memory-space assignment then places at once (at 1000 frames of
     `regime` on a v6e: arguments + outputs + temporaries 33.3 GiB, the chip's program
-    and arguments 21.8 GiB; docs/benchmarks.md), so its total is an upper bound there.
+    and arguments 21.8 GiB; docs/accelerators.md, note (3)), so its total is an upper bound there.
     `peak_bytes`: XLA's heap-simulator peak of the scheduled program, where the
     compiler reports one. `fallback`: the XLA options the plan compiled with instead of
     the target's own after these failed without a device, and why (None: the target's).
@@ -160,7 +160,7 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     saying what to install. progress: called with a line when a target's compile is
     retried (XLA:GPU's Triton gemm tiling failure: `targets.gemm_fallback`).
     """
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
 
     if min(frames, height, width, batch) <= 0:
         raise InputError(f"frames, height, width and batch must be positive; got {frames}, {height}, {width}, {batch}")

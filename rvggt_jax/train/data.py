@@ -35,7 +35,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
-from rvggt_jax.model.forward import InputError
+from rvggt_jax.errors import InputError
 
 Example = dict[str, np.ndarray]
 

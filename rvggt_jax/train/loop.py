@@ -28,7 +28,7 @@ import jax
 import numpy as np
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model.forward import InputError
+from rvggt_jax.errors import InputError
 from rvggt_jax.train import data as data_mod
 from rvggt_jax.train.step import (TrainConfig, divisors, init_state, latest_step, make_train_step, restore_state,
                                   save_state)

@@ -43,7 +43,9 @@ from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model.forward import InputError, check_inputs, forward_frames
+from rvggt_jax.errors import InputError
+from rvggt_jax.model.forward import forward_frames
+from rvggt_jax.model.inputs import check_inputs
 from rvggt_jax.parallel.sharded import FRAMES_AXIS, frame_shards
 from rvggt_jax.train.step import TrainConfig, TrainState, divisors, train_step_fn
 

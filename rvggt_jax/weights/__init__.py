@@ -25,8 +25,8 @@ from rvggt_jax.weights.converter import (
     unflatten_params,
 )
 from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError
-from rvggt_jax.weights.rules import RULES, Rule, apply_rule, find_rule
-from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+from rvggt_jax.model.param_rules import RULES, Rule, apply_rule, find_rule
+from rvggt_jax.model.params import upstream_state_dict_shapes
 
 
 

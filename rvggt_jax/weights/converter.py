@@ -18,10 +18,10 @@ import numpy as np
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.weights.errors import CheckpointError, CheckpointFileError, unreadable_message
 from rvggt_jax.weights.integrity import check_finite
-from rvggt_jax.weights.rules import Path as TreePath
-from rvggt_jax.weights.rules import apply_rule, converted_shapes, find_rule
-from rvggt_jax.weights.layout import expected_param_paths, flatten_params  # noqa: F401 (re-exported)
-from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+from rvggt_jax.model.param_rules import Path as TreePath
+from rvggt_jax.model.param_rules import apply_rule, converted_shapes, find_rule
+from rvggt_jax.model.params import expected_param_paths, flatten_params  # noqa: F401 (re-exported)
+from rvggt_jax.model.params import upstream_state_dict_shapes
 from rvggt_jax.model.params import Params
 
 TRACK_PREFIX = "track_head."

@@ -189,7 +189,7 @@ def test_no_accelerator_noise_on_a_cpu_host():
     [plan] extra's CUDA and TPU plugins installed (as in the test environment), `rvggt
     --version` (which imports JAX) prints the version and nothing on stderr: no absl
     "Could not find cuda drivers" lines, no plugin traceback."""
-    from rvggt_jax.ops.xla_cpu import ACCELERATOR_NODES
+    from rvggt_jax.app.xla_cpu import ACCELERATOR_NODES
 
     if any(os.path.exists(n) for n in ACCELERATOR_NODES):
         pytest.skip("this host has an accelerator: JAX loads its plugins")

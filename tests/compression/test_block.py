@@ -52,7 +52,7 @@ def test_rho0_sigma1_equals_dense(block_params):
     state = init_state(cfg.compression, sal, Geometry(S, H, W, NS))
     xd = xc = x
     for layer in range(24):
-        xd = layers.block(block_params, xd, HEADS, pos, cfg.rope_freq)
+        xd = layers.sequence_block(block_params, xd, pos, layers.BlockConfig(HEADS, rope_freq=cfg.rope_freq))
         xc, state = global_block(block_params, xc, pos, layer, cfg, state)
     assert rel_err(xc, xd) <= 1e-5
 
@@ -330,7 +330,8 @@ def test_frame_layers_attend_within_each_frame(block_params):
     x, sal = _data(4)
     pos = global_positions(S, H, W)
     out, _ = global_block(block_params, x, pos, 3, cfg, init_state(cfg.compression, sal, Geometry(S, H, W, NS)))
-    ref = layers.block(block_params, x.reshape(2 * S, L, C), HEADS, pos[:, :L], cfg.rope_freq).reshape(2, N, C)
+    ref = layers.sequence_block(block_params, x.reshape(2 * S, L, C), pos[:, :L],
+                                 layers.BlockConfig(HEADS, rope_freq=cfg.rope_freq)).reshape(2, N, C)
     np.testing.assert_array_equal(out, ref)
 
 

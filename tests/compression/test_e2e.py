@@ -101,7 +101,8 @@ def test_scanned_bands_equal_the_layer_by_layer_loop(tiny, golden):
         state = compression.init_state(cfg.compression, sal, Geometry(s, h, w, cfg.patch_start_idx))
         out = []
         for i in range(cfg.depth):
-            x = layers.block(p["frame_blocks"][str(i)], x.reshape(b * s, num, c), cfg.num_heads, pos, cfg.rope_freq)
+            x = layers.sequence_block(p["frame_blocks"][str(i)], x.reshape(b * s, num, c), pos,
+                                      layers.BlockConfig(cfg.num_heads, rope_freq=cfg.rope_freq))
             f = x.reshape(b, s, num, c)
             x, state = compression.global_block(p["global_blocks"][str(i)], x.reshape(b, s * num, c), gpos, i, cfg,
                                                 state)

@@ -98,7 +98,7 @@ def train_steps() -> dict:
     refused layouts' messages."""
     from rvggt_jax import train
     from rvggt_jax.config import CameraHeadConfig, DPTHeadConfig
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.train.sharded import (make_sharded_train_step, place_batch, place_state, train_layout,
                                           train_mesh)
     from tests.helpers.micro import micro_config

@@ -7,7 +7,7 @@ import pytest
 
 from rvggt_jax import InputError
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.model.forward import check_images
+from rvggt_jax.model.inputs import check_images
 from tests.helpers import TINY
 
 CONFIG = VGGTConfig.from_json(TINY / "config.json")

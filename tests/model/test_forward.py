@@ -237,7 +237,7 @@ def test_params_of_the_wrong_shape_are_named(tiny):
 def test_params_without_track_head_need_no_track_head(tiny):
     # a model loaded with skip_track: not missing anything, unless query points ask for it
     params, config = tiny
-    from rvggt_jax.model.forward import check_params
+    from rvggt_jax.model.inputs import check_params
 
     check_params(_without(params, "track_head"), config)
     check_params(params, config)

@@ -96,13 +96,13 @@ def test_16bit_bit_view_slices_pass_gradients(dtype):
 
 @pytest.mark.parametrize("dtype", ["bfloat16", "float16"])
 def test_bits16_buffer_passes_gradients(dtype):
-    """A 16-bit buffer held as bits (bits.Bits16, the aggregator's kept layers): writes
+    """A 16-bit buffer held as bits (bits.HalfBuffer, the aggregator's kept layers): writes
     and reads must pass the gradients of the plain float ops (through its shadow)."""
     x32 = jnp.asarray(np.random.default_rng(4).standard_normal((3, 2, 4)), jnp.float32)
     w = jnp.arange(1.0, 9.0).reshape(2, 4)
 
     def ours(t):
-        buf = bits.Bits16.zeros_from((3, 2, 4), dtype, t)
+        buf = bits.HalfBuffer.zeros_after((3, 2, 4), dtype, t)
         for k in range(3):
             buf = buf.update_index(t[k] * (k + 1), jnp.int32(k))
         return buf.read(lambda b, i: jax.lax.dynamic_index_in_dim(b, i, 0, keepdims=False), jnp.int32(1))

@@ -14,7 +14,7 @@ import pytest
 
 import rvggt_jax
 from rvggt_jax import InputRangeWarning, rvggt_forward
-from rvggt_jax.model.forward import check_inputs
+from rvggt_jax.model.inputs import check_inputs
 
 SHAPE = (1, 1, 3, 14, 14)  # one patch: the smallest forward
 

@@ -126,12 +126,9 @@ def test_cpu_program_keeps_the_blocked_kernel_and_its_bit_views():
     assert "ui16" in text
 
 
-def test_a_scope_or_an_argument_overrides_auto():
-    def scoped(q, k, v, b):
-        with attn.kernel_scope("blocked"):
-            return attn.attention(q, k, v, b)
-
-    assert CUDNN not in _lowered(scoped, device("h200"), jnp.bfloat16)
+def test_an_argument_overrides_auto():
+    assert CUDNN not in _lowered(lambda q, k, v, b: attn.attention(q, k, v, b, implementation="blocked"),
+                                 device("h200"), jnp.bfloat16)
     assert CUDNN in _lowered(lambda q, k, v, b: attn.attention(q, k, v, b, implementation="cudnn"),
                              device("h200"), jnp.bfloat16)
 
@@ -141,15 +138,17 @@ def test_bad_kernels_are_named():
     with pytest.raises(ValueError, match="bfloat16/float16 only.*'auto'"):
         attn.attention(q, q, q, implementation="cudnn")
     with pytest.raises(ValueError, match="tpu_flash"):
-        with attn.kernel_scope("flash"):
-            pass
+        attn.attention(q, q, q, implementation="flash")
 
 
-def test_a_scoped_half_only_kernel_leaves_float32_attention_to_auto():
+def test_the_kernel_is_data_not_a_scope():
+    # no context variable: the name travels in the block's config (and VGGTConfig.attention)
+    assert not hasattr(attn, "kernel_scope") and not hasattr(attn, "current_kernel")
+    from rvggt_jax.model.layers import BlockConfig
+
+    assert BlockConfig(2).kernel == "auto"
     q = jnp.asarray(np.random.default_rng(0).standard_normal((1, 5, 1, 8)), jnp.float32)
-    with attn.kernel_scope("cudnn"):
-        out = attn.attention(q, q, q)  # float32 (a head): "auto", no error
-    np.testing.assert_allclose(out, reference_attention(q, q, q), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(attn.attention(q, q, q), reference_attention(q, q, q), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("dtype, tol", [(jnp.float32, 2e-6), (jnp.bfloat16, 2e-2)])
@@ -191,6 +190,9 @@ def test_whole_forward_for_each_target(tiny):
     tpu = _forward_text(tiny, device("tpu-v6e"), "float32")
     assert tpu.count(TPU_KERNEL) >= 3 and CUDNN not in tpu
     assert CUDNN not in _forward_text(tiny, device("h200"), "bfloat16", "blocked")
+    # a 16-bit-only kernel runs the aggregator's attention (DINO, frame, global, merged,
+    # K/V layers); the float32 heads take "auto" (they would refuse cuDNN)
+    assert _forward_text(tiny, device("h200"), "bfloat16", "cudnn").count(CUDNN) >= 4
 
 
 @pytest.mark.parametrize("kernel, dtype, message", [

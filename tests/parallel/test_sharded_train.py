@@ -92,7 +92,7 @@ def test_layouts():
     ((4, 4, 4, 3), r"--frames-per-device 3 must divide --frames 4.*\[1, 2, 4\]"),
 ])
 def test_bad_device_counts_say_what_would(args, message):
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.train.sharded import train_layout
 
     with pytest.raises(InputError, match=message):
@@ -100,7 +100,7 @@ def test_bad_device_counts_say_what_would(args, message):
 
 
 def test_bad_accumulate_with_devices():
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.train.sharded import train_layout
 
     # 8 scenes in 4 micro-batches of 2: 4 devices on "data" do not divide them
@@ -111,7 +111,7 @@ def test_bad_accumulate_with_devices():
 def test_finetune_refuses_devices_that_do_not_divide_the_batch(tmp_path):
     # before any data is read or model loaded (one device is enough)
     from rvggt_jax import train
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
 
     opts = train.FinetuneOptions(batch=3, frames=4, devices=4)
     with pytest.raises(InputError, match=r"--devices 4 does not divide the batch.*Would work: --frames-per-device 1 "
@@ -147,7 +147,7 @@ def test_a_frame_split_needs_one_frame_count():
     """`rvggt finetune --frames 2-8 --frames-per-device K`: the frame axis would change
     size between buckets, so it is refused naming the fix; without a frame split a range
     is fine (the scenes go over the devices)."""
-    from rvggt_jax.model.forward import InputError
+    from rvggt_jax.errors import InputError
     from rvggt_jax.train.loop import FinetuneOptions, device_layout
     from rvggt_jax.train.sharded import TrainLayout
 

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import pytest
 
 import rvggt_jax
-from rvggt_jax.model.forward import InputError
+from rvggt_jax.errors import InputError
 from tests.helpers.long_sequence import BASE, H, S, W
 
 
@@ -77,10 +77,10 @@ def test_bad_sizes_are_named(frames, height, width):
 
 
 def test_kept_layers_are_never_converted_whole(plans):
-    # bfloat16 kept layers are held as bits (bits.Bits16) and the heads slice them per
+    # bfloat16 kept layers are held as bits (bits.HalfBuffer) and the heads slice them per
     # group of frames: no op of the compiled forward may convert a whole kept buffer [K,
     # B, S, P, C] (a loop-invariant view XLA hoists out of the heads' loop: 8.5 GB per
-    # buffer at 1000 frames of VGGT-1B, before Bits16)
+    # buffer at 1000 frames of VGGT-1B, before HalfBuffer)
     import math
     import re
 
@@ -198,7 +198,7 @@ def test_no_trigonometry_or_written_constants_in_the_forward(plans):
     # them again for every token (this plan of `regime` had them too). No scalar constant
     # is written out as a large array: GELU's constants, as scalars, were merged across
     # the blocks outside a loop with one MLP shape and written out in full for their
-    # YNNPACK fusions (the speed layout at 64 frames, docs/benchmarks.md; not this plan,
+    # YNNPACK fusions (the speed layout at 64 frames, docs/history/cpu_speed.md; not this plan,
     # where the check guards against new cases). Both checks also run on programs that
     # have what they look for.
     import re

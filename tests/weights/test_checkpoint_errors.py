@@ -39,7 +39,7 @@ def test_lone_safetensors_layout_inferred(tmp_path):
 
 def test_1b_shapes_need_no_config():
     from rvggt_jax.weights.infer import infer_config
-    from rvggt_jax.weights.shapes import upstream_state_dict_shapes
+    from rvggt_jax.model.params import upstream_state_dict_shapes
 
     config, assumed = infer_config(upstream_state_dict_shapes(VGGTConfig()))
     assert config == VGGTConfig() and assumed == []

@@ -24,8 +24,8 @@ from rvggt_jax.weights import (
     load_safetensors,
     upstream_state_dict_shapes,
 )
-from rvggt_jax.convert import main
-from rvggt_jax.weights.rules import apply_rule, converted_shapes, matching_rules
+from rvggt_jax.app.convert_command import main
+from rvggt_jax.model.param_rules import apply_rule, converted_shapes, matching_rules
 from rvggt_jax.weights.checkpoint import save_orbax
 from rvggt_jax.weights.pretrained import load_pretrained
 from rvggt_jax.config import VGGTConfig

@@ -52,7 +52,7 @@ def inverse_log_transform(y: jax.Array) -> jax.Array:
 
 def _trunk(params: Params, x: jax.Array, num_heads: int) -> jax.Array:
     """The trunk attends across the S frames of each batch element: x [B, S, C]."""
-    return layers.block_stack(params, range(len(params)), x, num_heads)
+    return layers.block_stack(params, range(len(params)), x, None, layers.BlockConfig(num_heads))
 
 
 def _refine(params: Params, tokens: jax.Array, raw_pose: jax.Array, num_heads: int) -> jax.Array:

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from rvggt_jax.model import layers
-from rvggt_jax.ops.ordering import with_dependency, zeros_from
+from rvggt_jax.ops.ordering import zeros_after
 from rvggt_jax.config import DPTHeadConfig, TokenGrid
 from rvggt_jax.model.heads.camera import inverse_log_transform
 from rvggt_jax.model.heads.conv import conv2d, conv_transpose_patchwise, relu_pointwise
@@ -96,11 +96,7 @@ def _token_map(params: Params, tokens: jax.Array, patch_start_idx: int, grid_hw:
     """Patch tokens [N, P, C] -> normalised map [N, h, w, C]."""
     n, _, c = tokens.shape
     x = tokens[:, patch_start_idx:].reshape(n, grid_hw[0], grid_hw[1], c)
-    # the norm's scale and bias made from x (the same values): XLA merges the broadcasts of
-    # the one norm applied to 4 layers into one, which XLA:CPU writes out in full for the
-    # 4 projections' YNNPACK fusions (2 x [S*h*w, C], ~2 ms a forward at 64 frames)
-    norm = jax.tree.map(lambda a: with_dependency(a, x), params["norm"])
-    return layers.layer_norm(norm, x)
+    return layers.layer_norm(params["norm"], x)
 
 
 def level_map(params: Params, level: int, tokens: jax.Array, patch_start_idx: int, grid_hw: tuple[int, int]
@@ -204,7 +200,7 @@ def map_frame_groups(fn, tokens: Sequence[Any], image_hw: tuple[int, int], remat
     else:
         shapes = jax.eval_shape(lambda: run(0)[1])
         dep = tokens[0].frames(0, 1)  # made when the tokens are, not at the program start
-        init = jax.tree.map(lambda o: zeros_from((n,) + o.shape[1:], o.dtype, dep), shapes)
+        init = jax.tree.map(lambda o: zeros_after((n,) + o.shape[1:], o.dtype, dep), shapes)
 
         def body(i, acc):
             start, res = run(i)
@@ -365,7 +361,7 @@ def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DP
     "point_head": ...}, either or both) in one loop over groups of frames: {"depth",
     "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
     return them. One loop reads the kept aggregator layers once (two loops would each
-    need their own copy of them in XLA's plan). `remat`: see `map_frame_groups`."""
+    need their own copy of them). `remat`: see `map_frame_groups`."""
     if not ({"depth_head", "point_head"} & set(params)):
         return {}
     heads = {}

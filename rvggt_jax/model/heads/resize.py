@@ -93,7 +93,7 @@ def resized_conv3x3(p: Params, size: tuple[int, int], pos: jax.Array | np.ndarra
     the bias, and convolves at the low resolution: x's channels mixed into the 9 taps' O
     outputs per input pixel, each tap then resized with its shifted rows and columns.
     With C < O (the 8 -> 32 of narrow models) mixing first widens the map 9 O / C times,
-    so it resizes and convolves as written (docs/benchmarks.md measures both)."""
+    so it resizes and convolves as written (docs/history/cpu_speed.md measures both)."""
     kernel = p["kernel"]
     if kernel.shape[:2] != (3, 3):
         raise ValueError(f"resized_conv3x3 takes a 3x3 kernel, got {kernel.shape[:2]}")

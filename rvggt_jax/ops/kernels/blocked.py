@@ -27,13 +27,13 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from rvggt_jax.ops.bits import Bits16, is_16bit_float, read_buffer
+from rvggt_jax.ops.bits import HalfBuffer, is_16bit_float, read_buffer
 from rvggt_jax.ops.chunks import dynamic_index
-from rvggt_jax.ops.ordering import zeros_from
+from rvggt_jax.ops.ordering import zeros_after
 from rvggt_jax.ops.precision import precision_scope
 
 # Bytes of one logits block: a block that stays in L2/L3 and gives the value matmul
-# hundreds of rows (measurements: docs/benchmarks.md).
+# hundreds of rows (measurements: docs/history/dense_forward.md, long_sequences.md, cpu_speed.md).
 LOGITS_BLOCK_BYTES = 24 * 2**20
 
 def query_blocks(nq: int, nk: int, itemsize: int = 4, block_bytes: int | None = None) -> tuple[int, int]:
@@ -75,14 +75,14 @@ def _forward(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
     """The cache-blocked kernel. q [B, Nq, H, D], k [B, Nk, H, D], v [B, Nk, H, Dv], key_bias
     [B, Nk] float32 or None -> ([B, Nq, H, Dv] (float32 when in one block, else
     `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H] float32).
-    bits: hold 16-bit operands as `Bits16` in the loop (XLA:CPU's workaround; the attention
+    bits: hold 16-bit operands as `HalfBuffer` in the loop (XLA:CPU's workaround; the attention
     op passes False for the programs it compiles for other platforms)."""
     b, nq, h, d = q.shape
     nk, dv = k.shape[1], v.shape[-1]
     # (the scale stays a constant: XLA:CPU writes its broadcast out once for the frame
     # blocks a plan runs outside a loop, 3.2 MB at 64 frames of the speed layout, but made
     # from q it changes the logits' last bits, and a near-tie merge decision of `fastvggt`
-    # at 16 frames went the other way than FastVGGT's code: docs/benchmarks.md)
+    # at 16 frames went the other way than FastVGGT's code: docs/history/cpu_speed.md)
     qt = (q * jnp.asarray(scale, q.dtype)).transpose(0, 2, 1, 3)  # [B, H, Nq, D]
     kh = k.transpose(0, 2, 1, 3)  # [B, H, Nk, D]
     vt = v.transpose(0, 2, 1, 3)  # [B, H, Nk, Dv]
@@ -96,7 +96,7 @@ def _forward(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
     kh, vt = kh.reshape(b * h, nk, d), vt.reshape(b * h, nk, dv)
     # 16-bit operands as bits from the start (a bit view made in the loop is hoisted out
     # of it as a copy of the operand)
-    qb, kh, vt = (Bits16.of(t) if bits and is_16bit_float(t) else t for t in (qb, kh, vt))
+    qb, kh, vt = (HalfBuffer.of(t) if bits and is_16bit_float(t) else t for t in (qb, kh, vt))
 
     def index(t, i):
         return read_buffer(t, lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)
@@ -112,8 +112,8 @@ def _forward(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | Non
 
     # (the output buffer made from q: a constant one would live from the program start)
     out_dtype = q.dtype if out_dtype is None else out_dtype
-    init = zeros_from((b * h * n, rows, dv), out_dtype, q)
-    out, lse = jax.lax.fori_loop(0, b * h * n, body, (init, zeros_from((b * h * n, rows), jnp.float32, init)))
+    init = zeros_after((b * h * n, rows, dv), out_dtype, q)
+    out, lse = jax.lax.fori_loop(0, b * h * n, body, (init, zeros_after((b * h * n, rows), jnp.float32, init)))
     return (out.reshape(b, h, n * rows, dv)[:, :, :nq].transpose(0, 2, 1, 3),
             lse.reshape(b, h, n * rows)[:, :, :nq].transpose(0, 2, 1))
 
@@ -123,7 +123,7 @@ def blocked_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Ar
     """The cache-blocked kernel, with its O(N d) backward. q [B, Nq, H, D], k [B, Nk, H, D],
     v [B, Nk, H, Dv], key_bias [B, Nk] float32 or None -> ([B, Nq, H, Dv] (float32 when
     in one block, else `out_dtype`, default q's), log-sum-exp of the logits [B, Nq, H]
-    float32). bits: hold 16-bit operands as `Bits16` in the loop (XLA:CPU's workaround;
+    float32). bits: hold 16-bit operands as `HalfBuffer` in the loop (XLA:CPU's workaround;
     the attention op passes False for the programs it compiles for other platforms).
     Gradients: to q, k, v and key_bias (in their dtypes), from both outputs."""
     out_dtype = None if out_dtype is None else jnp.dtype(out_dtype)
@@ -217,7 +217,7 @@ def _grads(scale, block_bytes, out_dtype, bits, res, cts):
     qb, ob, dob = blocks(qt), blocks(ot), blocks(dot)
     lb, dlb = blocks(lt, jnp.inf), blocks(dlt)
     kp, vp = kh.reshape(b * h, nk, d), vt.reshape(b * h, nk, dv_)
-    qb, kp, vp, ob, dob = (Bits16.of(t) if bits and is_16bit_float(t) else t for t in (qb, kp, vp, ob, dob))
+    qb, kp, vp, ob, dob = (HalfBuffer.of(t) if bits and is_16bit_float(t) else t for t in (qb, kp, vp, ob, dob))
 
     def index(t, i):
         return read_buffer(t, lambda a, j: jax.lax.dynamic_index_in_dim(a, j, 0, keepdims=False), i)
@@ -236,8 +236,8 @@ def _grads(scale, block_bytes, out_dtype, bits, res, cts):
             dbias = None if dbias is None else dbias + ds.sum(axis=0)
             return jax.lax.dynamic_update_index_in_dim(dq_all, dq, i, 0), dk + dki, dv + dvi, dbias
 
-        zk = zeros_from((nk, d), f32, kb)
-        inner = (dq_all, zk, zeros_from((nk, dv_), f32, zk), None if bias is None else zeros_from((nk,), f32, zk))
+        zk = zeros_after((nk, d), f32, kb)
+        inner = (dq_all, zk, zeros_after((nk, dv_), f32, zk), None if bias is None else zeros_after((nk,), f32, zk))
         dq_all, dk, dv, dbias = jax.lax.fori_loop(0, n, block_body, inner)
         dk_all = jax.lax.dynamic_update_index_in_dim(dk_all, dk.astype(k.dtype), pair, 0)
         dv_all = jax.lax.dynamic_update_index_in_dim(dv_all, dv.astype(v.dtype), pair, 0)
@@ -248,8 +248,8 @@ def _grads(scale, block_bytes, out_dtype, bits, res, cts):
         return dq_all, dk_all, dv_all, dbias_all
 
     # (buffers made from the cotangent: constant ones would live from the program start)
-    init = (zeros_from((b * h * n, rows, d), q.dtype, dout), zeros_from((b * h, nk, d), k.dtype, dout),
-            zeros_from((b * h, nk, dv_), v.dtype, dout), None if bias is None else zeros_from((b, nk), f32, dout))
+    init = (zeros_after((b * h * n, rows, d), q.dtype, dout), zeros_after((b * h, nk, d), k.dtype, dout),
+            zeros_after((b * h, nk, dv_), v.dtype, dout), None if bias is None else zeros_after((b, nk), f32, dout))
     dq, dk, dv, dbias = jax.lax.fori_loop(0, b * h, pair_body, init)
     dq = dq.reshape(b, h, n * rows, d)[:, :, :nq].transpose(0, 2, 1, 3)
     return (dq, dk.reshape(b, h, nk, d).transpose(0, 2, 1, 3), dv.reshape(b, h, nk, dv_).transpose(0, 2, 1, 3),

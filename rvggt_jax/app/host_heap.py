@@ -6,7 +6,7 @@ most 32 MiB) with pages mapped for that block alone, and unmaps them when it is 
 heap above its trim threshold goes back to the system too. So each run of a compiled
 program faults its working set in again, page by page, with the kernel zeroing each one:
 a 64-frame `regime` forward of the benchmarks' speed layout takes ~42,000 minor page faults
-(~165 MiB) on every run, 2-3% of its time on a 2-core CPU (docs/benchmarks.md).
+(~165 MiB) on every run, 2-3% of its time on a 2-core CPU (docs/history/cpu_speed.md, "The host heap").
 
 `keep_freed_host_memory()` sets two of glibc's malloc parameters (`mallopt`):
   - M_MMAP_MAX = 0: no block gets pages of its own; every block comes from the heap;

@@ -131,7 +131,7 @@ def leave_cuda_plugin_unloaded() -> bool:
 def _unused_plugin(name: str) -> types.ModuleType:
     """A stand-in for the PJRT plugin module `name` that JAX's plugin discovery imports and
     calls `initialize()` of: the real one would load the CUDA libraries (and log)."""
-    module = types.ModuleType(name, "JAX's CUDA plugin, left unloaded by rvggt_jax.ops.xla_cpu (CPU only).")
+    module = types.ModuleType(name, "JAX's CUDA plugin, left unloaded by rvggt_jax.app.xla_cpu (CPU only).")
     module.initialize = lambda: None
     return module
 

@@ -151,7 +151,7 @@ def apply_rule(kind: str, key: str, x: np.ndarray) -> Iterator[tuple[Path, np.nd
 
     Returned arrays may be (strided) views of `x`; callers needing memory of their own
     copy them. Works on zero-stride placeholders too, which is how converted shapes are
-    derived (`rvggt_jax.weights.converter.expected_param_shapes`) by the very same code."""
+    derived (`model.params.expected_param_paths`) by the very same code."""
     parts = key.split(".")
     module, leaf = tuple(parts[:-1]), parts[-1]
     if kind == RAW:

@@ -1,4 +1,4 @@
-"""`rvggt_jax.keep_freed_host_memory()` (`rvggt_jax.ops.host_heap`): glibc's malloc keeps
+"""`rvggt_jax.keep_freed_host_memory()` (`rvggt_jax.app.host_heap`): glibc's malloc keeps
 freed memory, so a second run of a compiled program faults no pages in. Each case runs in
 a fresh interpreter (malloc's parameters are per process)."""
 
@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from rvggt_jax.ops import host_heap
+from rvggt_jax.app import host_heap
 from tests.helpers.paths import REPO as ROOT
 
 pytestmark = pytest.mark.skipif(host_heap._glibc() is None, reason="glibc's malloc only")
@@ -20,7 +20,7 @@ pytestmark = pytest.mark.skipif(host_heap._glibc() is None, reason="glibc's mall
 MALLOC_PROBE = """
 import ctypes, resource
 import rvggt_jax
-from rvggt_jax.ops import host_heap
+from rvggt_jax.app import host_heap
 {call}
 libc = ctypes.CDLL("libc.so.6")
 libc.malloc.restype = ctypes.c_void_p

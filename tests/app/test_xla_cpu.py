@@ -1,5 +1,5 @@
 """`rvggt_jax.prefer_threaded_convolutions()` routes CPU convolutions to XLA's
-multi-threaded path (`rvggt_jax.ops.xla_cpu`), only when it safely can; the `rvggt`
+multi-threaded path (`rvggt_jax.app.xla_cpu`), only when it safely can; the `rvggt`
 command calls it, `import rvggt_jax` alone does not. Each case runs in a fresh
 interpreter: XLA reads its flags once."""
 
@@ -10,7 +10,7 @@ import subprocess
 import sys
 import pytest
 
-from rvggt_jax.ops import xla_cpu
+from rvggt_jax.app import xla_cpu
 from tests.helpers.paths import REPO as ROOT
 
 PROBE = """
@@ -18,7 +18,7 @@ import {first}
 import contextlib, io
 import jax, jax.numpy as jnp
 import rvggt_jax
-from rvggt_jax.ops import xla_cpu
+from rvggt_jax.app import xla_cpu
 {call}
 x = jnp.zeros((2, 48, 64, 64)); k = jnp.zeros((3, 3, 64, 64))
 conv = jax.jit(lambda x: jax.lax.conv_general_dilated(x, k, (1, 1), "SAME",
@@ -76,7 +76,7 @@ def test_no_effect_once_a_backend_runs():
 
 CPU_PROBE = """
 import os, sys
-from rvggt_jax.ops import xla_cpu
+from rvggt_jax.app import xla_cpu
 import jax
 set_it = xla_cpu.use_cpu_without_accelerator(tuple(sys.argv[1:]))
 print(set_it, os.environ.get("JAX_PLATFORMS"), jax.devices()[0].platform)
@@ -113,7 +113,7 @@ def test_cpu_backend_on_a_host_without_accelerators(tmp_path, case):
 
 PLUGIN_PROBE = """
 import os, sys
-from rvggt_jax.ops import xla_cpu
+from rvggt_jax.app import xla_cpu
 for platforms in sys.argv[1:]:
     os.environ["JAX_PLATFORMS"] = platforms
     print(xla_cpu.leave_cuda_plugin_unloaded(), "jax_cuda12_plugin" in sys.modules)
