@@ -6,6 +6,7 @@ docs/memory_layout.md:
     ordered_after(x, dep)        x, unchanged, computed after every leaf of dep exists
     zeros_after(shape, dtype, dep)  zeros that exist only from dep on
     materialize(values)          values computed here, whole, as they are
+    relu_unwritten(x, dep)       jax.nn.relu(x) whose zero is never written out as a map
 
 Why a model needs to say this at all: XLA orders operations by data dependency only. A
 constant buffer (a loop's zero output or accumulator) is allocated at the program start
@@ -56,3 +57,23 @@ def materialize(values: T) -> T:
     of which would recompute them) and not split across them (`lax.optimization_barrier`).
     Exact: the values are unchanged."""
     return jax.lax.optimization_barrier(values)
+
+
+def relu_unwritten(x: jax.Array, dep: jax.Array) -> jax.Array:
+    """jax.nn.relu(x) for x [..., I] (the same values and gradient), taken against a zero
+    vector [I] made from `dep` rather than a scalar constant: XLA:CPU's YNNPACK fusion of a
+    convolution, the ReLU and a reduction writes a scalar's broadcast out as a whole map of
+    zeros (one [frames, H, W, I] map per frame group of a DPT head), a vector it broadcasts
+    itself (docs/memory_layout.md)."""
+    return _relu_against(x, zeros_after(x.shape[-1:], x.dtype, dep))
+
+
+@jax.custom_jvp
+def _relu_against(x: jax.Array, zero: jax.Array) -> jax.Array:
+    return jnp.maximum(x, zero)
+
+
+@_relu_against.defjvp
+def _relu_against_jvp(primals, tangents):
+    x, zero = primals
+    return _relu_against(x, zero), jnp.where(x > zero, tangents[0], jnp.zeros_like(tangents[0]))

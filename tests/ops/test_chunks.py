@@ -73,7 +73,7 @@ def test_row_chunk_size():
     assert chunks.row_chunks(50, 4, 400) == 50  # everything fits: one chunk
 
 
-def test_zeros_from_are_zeros_whatever_the_dependency_holds():
+def test_zeros_after_are_zeros_whatever_the_dependency_holds():
     for dep in (np.array([np.nan, 1.0]), np.array([np.inf]), np.array([-3.0])):
         z = jax.jit(lambda d: ordering.zeros_after((3, 2), jnp.bfloat16, d))(dep)
         assert z.dtype == jnp.bfloat16 and not np.any(np.asarray(z, np.float32))
@@ -139,7 +139,7 @@ def test_16bit_slices_and_gathers_equal_lax(dtype):
         np.testing.assert_array_equal(np.asarray(got, np.float32), np.asarray(want, np.float32))
 
 
-def test_with_dependency_leaves_the_value_unchanged():
+def test_ordered_after_leaves_the_value_unchanged():
     x = jnp.asarray([1.5, -2.0, 3.0e30], jnp.float32)
     deps = {"a": jnp.asarray([np.nan, 1.0]), "b": jnp.asarray([np.inf], jnp.bfloat16)}
     out = jax.jit(ordering.ordered_after)(x, deps)

@@ -18,7 +18,8 @@ import pytest
 import rvggt_jax
 from rvggt_jax.config import VGGTConfig
 from rvggt_jax.eval.heldout import images_of, score_scene, summarize
-from rvggt_jax.model.forward import InputError, rvggt_forward
+from rvggt_jax.errors import InputError
+from rvggt_jax.model.forward import rvggt_forward
 from rvggt_jax.synthetic import HELD_OUT_SEEDS, make_scene
 from rvggt_jax.train.small import SmallRecipe, train_image_size, train_small
 from rvggt_jax.train.step import latest_step

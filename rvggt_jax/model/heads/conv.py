@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from rvggt_jax.model import layers
 from rvggt_jax.model.params import Params
+from rvggt_jax.ops.ordering import relu_unwritten
 
 
 def conv2d(p: Params, x: jax.Array, stride: int = 1, padding: int | None = None) -> jax.Array:
@@ -44,7 +45,8 @@ def relu_pointwise(p: Params, x: jax.Array) -> jax.Array:
     if kernel.shape[-1] > POINTWISE_REDUCE_MAX_OUT:
         return conv2d(p, jax.nn.relu(x))
     w = kernel[0, 0].astype(jnp.float32)  # [I, O]
-    y = jnp.sum(jax.nn.relu(x.astype(jnp.float32))[..., :, None] * w, axis=-2)
+    # (a ReLU whose zero is made from the weights: no map of zeros is written out for it)
+    y = jnp.sum(relu_unwritten(x.astype(jnp.float32), w)[..., :, None] * w, axis=-2)
     if "bias" in p:
         y = y + p["bias"].astype(jnp.float32)
     return y.astype(x.dtype)
