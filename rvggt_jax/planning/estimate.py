@@ -48,13 +48,14 @@ import time
 from dataclasses import dataclass
 
 from rvggt_jax.config import VGGTConfig
-
-# DPT: upstream's fixed width of output_conv2's hidden layer, and the output channels of
-# the depth (depth + confidence) and point (xyz + confidence) heads
-DPT_HEAD_FEATURES_2 = 32
-DEPTH_OUT, POINT_OUT = 2, 4
-# Tracker (upstream BaseTrackerPredictor defaults, which TrackHead never overrides)
-TRACK_TIME_BLOCKS, TRACK_SPACE_BLOCKS, TRACK_VIRTUAL = 6, 6, 64
+# upstream's fixed sizes, as the parameter layout states them: output_conv2's hidden width,
+# the depth (depth + confidence) and point (xyz + confidence) heads' outputs, the
+# tracker's time and space blocks
+from rvggt_jax.model.params import DEPTH_OUTPUT_DIM as DEPTH_OUT
+from rvggt_jax.model.params import DPT_HEAD_FEATURES_2
+from rvggt_jax.model.params import POINT_OUTPUT_DIM as POINT_OUT
+from rvggt_jax.model.params import TRACKER_SPACE_DEPTH as TRACK_SPACE_BLOCKS
+from rvggt_jax.model.params import TRACKER_TIME_DEPTH as TRACK_TIME_BLOCKS
 
 
 # ---------------------------------------------------------------------------------------
