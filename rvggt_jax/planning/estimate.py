@@ -51,11 +51,8 @@ from rvggt_jax.config import VGGTConfig
 # upstream's fixed sizes, as the parameter layout states them: output_conv2's hidden width,
 # the depth (depth + confidence) and point (xyz + confidence) heads' outputs, the
 # tracker's time and space blocks
-from rvggt_jax.model.params import DEPTH_OUTPUT_DIM as DEPTH_OUT
-from rvggt_jax.model.params import DPT_HEAD_FEATURES_2
-from rvggt_jax.model.params import POINT_OUTPUT_DIM as POINT_OUT
-from rvggt_jax.model.params import TRACKER_SPACE_DEPTH as TRACK_SPACE_BLOCKS
-from rvggt_jax.model.params import TRACKER_TIME_DEPTH as TRACK_TIME_BLOCKS
+from rvggt_jax.model.params import (DEPTH_OUTPUT_DIM, DPT_HEAD_FEATURES_2, POINT_OUTPUT_DIM, TRACKER_SPACE_DEPTH,
+                                    TRACKER_TIME_DEPTH)
 
 
 # ---------------------------------------------------------------------------------------
@@ -124,9 +121,9 @@ def track_head_flops(config: VGGTConfig, frames: int, h: int, w: int, queries: i
     d_in = 3 * c + 4
     rows = queries * frames
     corr_in = t.corr_levels * (2 * t.corr_radius + 1) ** 2
-    blocks = TRACK_TIME_BLOCKS + 3 * TRACK_SPACE_BLOCKS
+    blocks = TRACKER_TIME_DEPTH + 3 * TRACKER_SPACE_DEPTH
     per_iter = 2 * rows * (d_in * hid + blocks * 12 * hid * hid + hid * (2 + c) + corr_in * hid + hid * c + c * c)
-    per_iter += 2 * 2 * queries * frames * frames * hid * TRACK_TIME_BLOCKS  # attention over time
+    per_iter += 2 * 2 * queries * frames * frames * hid * TRACKER_TIME_DEPTH  # attention over time
     per_iter += 2 * rows * t.corr_levels * (2 * t.corr_radius + 2) ** 2 * c  # correlation windows
     return frames * feats + t.iters * per_iter
 
@@ -153,8 +150,8 @@ def forward_flops(config: VGGTConfig, frames: int, height: int, width: int, with
     scores += (frame_attn // (4 * config.head_dim) + dino_attn // (4 * (c // config.dino.num_heads)))
     aggregator = rep["aggregator_flops"] + rep["patch_embed_flops"]
     heads = camera_head_flops(config, frames) if config.enable_camera else 0
-    heads += dpt_head_flops(config, frames, h, w, DEPTH_OUT) if config.enable_depth else 0
-    heads += dpt_head_flops(config, frames, h, w, POINT_OUT) if config.enable_point else 0
+    heads += dpt_head_flops(config, frames, h, w, DEPTH_OUTPUT_DIM) if config.enable_depth else 0
+    heads += dpt_head_flops(config, frames, h, w, POINT_OUTPUT_DIM) if config.enable_point else 0
     if with_track and config.enable_track:
         heads += track_head_flops(config, frames, h, w, queries)
     return dict(linear=aggregator - attention, attention=attention, heads=heads, total=aggregator + heads,

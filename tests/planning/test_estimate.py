@@ -7,6 +7,7 @@ import dataclasses
 import pytest
 
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.model.params import DEPTH_OUTPUT_DIM, POINT_OUTPUT_DIM
 from rvggt_jax.planning import estimate
 from tests.helpers import SAMPLE_IMAGES, TINY
 
@@ -45,8 +46,8 @@ def test_flops_grow_with_frames_and_regime_saves_at_many():
 def test_heads_follow_the_enabled_heads():
     full = estimate.forward_flops(SMALL, 8, 168, 224)["heads"]
     no_point = estimate.forward_flops(dataclasses.replace(SMALL, enable_point=False), 8, 168, 224)["heads"]
-    depth = estimate.dpt_head_flops(SMALL, 8, 12, 16, estimate.DEPTH_OUT)
-    point = estimate.dpt_head_flops(SMALL, 8, 12, 16, estimate.POINT_OUT)
+    depth = estimate.dpt_head_flops(SMALL, 8, 12, 16, DEPTH_OUTPUT_DIM)
+    point = estimate.dpt_head_flops(SMALL, 8, 12, 16, POINT_OUTPUT_DIM)
     assert full == pytest.approx(no_point + point) and point > depth > 0
     tracked = estimate.forward_flops(SMALL, 8, 168, 224, with_track=True, queries=256)["heads"]
     assert tracked > full
@@ -70,7 +71,7 @@ def test_dpt_head_flops_match_xla_count(tiny):
     fn = jax.jit(lambda p, a: dense_heads({"depth_head": p}, a, config.dpt_head, grid))
     cost = fn.lower(params["depth_head"], agg).compile().cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
-    assert estimate.dpt_head_flops(config, s, h, w, estimate.DEPTH_OUT) == pytest.approx(cost["flops"], rel=0.1)
+    assert estimate.dpt_head_flops(config, s, h, w, DEPTH_OUTPUT_DIM) == pytest.approx(cost["flops"], rel=0.1)
 
 
 def test_probe_runs_once_per_process(probe_calls):
