@@ -211,10 +211,13 @@ def run_training(out: Path, params: dict, config: VGGTConfig, tc: TrainConfig, o
     OUT/state, checkpointing every `opts.save_every` steps, logging to OUT/log.jsonl and
     OUT/loss.png; OUT/model at the end. `source` describes the data in the log."""
     lo, hi = min(buckets), max(buckets)
-    state = init_state(params, tc)
     saved = latest_step(out)
     if saved is not None:
-        state = restore_state(out, state)
+        # the saved state replaces every leaf: a fresh one's shapes are enough (no second
+        # optimiser state is allocated; `params` may be shapes, `jax.eval_shape`'s)
+        state = restore_state(out, jax.eval_shape(lambda p: init_state(p, tc), params))
+    else:
+        state = init_state(params, tc)
     start = int(state.step)
     stop = min(opts.steps, opts.stop_at) if opts.stop_at is not None else opts.steps
     if saved is not None:

@@ -51,10 +51,12 @@ def train_small(out: str | Path, recipe: SmallRecipe = SmallRecipe(), *, stop_at
                 log: Callable[[str], Any] = print, progress: bool = True) -> Path:
     """Train (or resume) the small model into `out`; returns OUT/model when `recipe.steps`
     are done, else the newest OUT/state step."""
+    import jax
+
     import rvggt_jax
     from rvggt_jax.train.loop import FinetuneOptions, run_training
     from rvggt_jax.train.procedural import TRAIN_SEED_BASE, procedural_batch
-    from rvggt_jax.train.step import TrainConfig
+    from rvggt_jax.train.step import TrainConfig, latest_step
 
     from rvggt_jax.train import data as data_mod
 
@@ -62,7 +64,9 @@ def train_small(out: str | Path, recipe: SmallRecipe = SmallRecipe(), *, stop_at
     data_mod._check_size(recipe.size)  # bad settings fail before anything is built
     data_mod.frame_plan(recipe.frames, recipe.buckets)
     config = VGGTConfig.rvggt_small()
-    params = rvggt_jax.init_params(config, recipe.seed)
+    init = lambda: rvggt_jax.init_params(config, recipe.seed)  # noqa: E731
+    # a resumed run reads every parameter from OUT/state: their shapes are enough
+    params = jax.eval_shape(init) if latest_step(out) is not None else init()
     tc = TrainConfig(learning_rate=recipe.learning_rate, warmup_steps=recipe.warmup_steps, total_steps=recipe.steps,
                      final_lr_ratio=recipe.final_lr_ratio).validate()
     opts = FinetuneOptions(steps=recipe.steps, frames=recipe.frames, size=recipe.size, batch=recipe.batch,
