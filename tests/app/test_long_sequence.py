@@ -2,7 +2,8 @@
 the one-forward run; 12 frames in 3 chunks write every output for all 12 frames (pycolmap
 reads the model), and a run stopped after its first chunk resumes to the same result;
 the options' and the folder's bad values are one-line errors. Every forward here has 6
-frames of 518 x 392: one compilation for the module (in-process runs)."""
+frames of 112 x 84 (`--size 112`: what is checked here is the chunking, not the network
+size): one compilation for the module (in-process runs)."""
 
 import json
 from pathlib import Path
@@ -14,6 +15,7 @@ from PIL import Image
 from tests.helpers import TINY
 
 FRAMES = 12
+SIZE = 112  # the network width: 112 x 84 from the frames' 80 x 60
 
 
 @pytest.fixture(autouse=True)
@@ -46,6 +48,7 @@ def reconstruct(*args, **kw):
     from rvggt_jax.app.commands import ReconstructOptions, reconstruct_folder
 
     kw.setdefault("quiet", True)
+    kw.setdefault("size", SIZE)
     kw.setdefault("max_points", 20_000)
     return reconstruct_folder(*args, ReconstructOptions(**kw))
 

@@ -36,17 +36,24 @@ VGGTConfig.compute_dtype = property(lambda self: jnp.dtype(jnp.float64))
 
 def main(presets):
     config = micro_config(enable_point=False, enable_track=False)
-    params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), rvggt_jax.init_params(config, 1))
+    tree = rvggt_jax.init_params(config, 1)
+    treedef = jax.tree.structure(tree)
+    host = [np.asarray(x, np.float64) for x in jax.tree.leaves(tree)]
+    params = jax.tree.unflatten(treedef, [jnp.asarray(x) for x in host])
     rng = np.random.default_rng(0)
     images = jnp.asarray(rng.random((1, 3, 3, 28, 42)))
     # a random direction in parameter space, scaled like each leaf (so no leaf dominates);
-    # drawn on the host, and the perturbations and the dot product each one jitted
-    # program over the whole tree (leaf by leaf, every shape would compile its own ops)
-    host = [np.asarray(x) for x in jax.tree.leaves(params)]
-    direction = jax.tree.unflatten(jax.tree.structure(params),
-                                   [jnp.asarray(rng.standard_normal(x.shape) * (x.std() + 1e-3)) for x in host])
-    shifted = jax.jit(lambda p, d, s: jax.tree.map(lambda a, b: a + s * b, p, d))
-    dot = jax.jit(lambda g, d: sum(jnp.vdot(a, b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(d))))
+    # the direction, the perturbations and the dot product in float64 numpy on the host
+    # (jitted, they were two programs more to compile; eagerly, leaf by leaf, every shape
+    # compiled its own ops)
+    direction = [rng.standard_normal(x.shape) * (x.std() + 1e-3) for x in host]
+
+    def shifted(s):
+        return jax.tree.unflatten(treedef, [jnp.asarray(a + s * d) for a, d in zip(host, direction)])
+
+    def dot(g):
+        return sum(float(np.vdot(np.asarray(a, np.float64), d)) for a, d in zip(jax.tree.leaves(g), direction))
+
     out = {}
     for preset in presets:
         cfg = config.with_compression(preset)
@@ -60,12 +67,12 @@ def main(presets):
         # one compiled program for all evaluations (the value of value_and_grad is the loss)
         vg = jax.jit(jax.value_and_grad(loss))
         _, g = vg(params)
-        analytic = dot(g, direction)
+        analytic = dot(g)
         # central differences at a step where their truncation error (~eps^2) is far
         # below the target and float64 rounding (~1e-16 / eps) still negligible
         eps = 1e-6
-        plus = vg(shifted(params, direction, eps))[0]
-        minus = vg(shifted(params, direction, -eps))[0]
+        plus = vg(shifted(eps))[0]
+        minus = vg(shifted(-eps))[0]
         numeric = (plus - minus) / (2 * eps)
         out[preset] = {"analytic": float(analytic), "numeric": float(numeric),
                        "rel_err": float(abs(analytic - numeric) / max(abs(numeric), 1e-30))}

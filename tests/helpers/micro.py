@@ -16,6 +16,17 @@ def micro_config(**overrides) -> VGGTConfig:
     return VGGTConfig(**base).validate()
 
 
+def train_config(layers: int = 2) -> VGGTConfig:
+    """The smallest layouts with a camera loss and a masked depth loss, for train steps:
+    `layers` aggregator layers of `micro_config` (2: `plan_config`'s) with the camera head
+    (one trunk block, one iteration) and the depth head (DPT, reading layers 0, 1 and the
+    last)."""
+    return micro_config(depth=layers, enable_point=False, enable_track=False,
+                        camera_head=CameraHeadConfig(num_heads=2, trunk_depth=1, iters=1),
+                        dpt_head=DPTHeadConfig(features=8, out_channels=(4, 8, 16, 16),
+                                               intermediate_layer_idx=(0, 1, layers - 1, layers - 1)))
+
+
 def plan_config(head: str = "camera") -> VGGTConfig:
     """The smallest forward the memory plans compile (deviceless, for each target, in a
     few seconds): 2 layers of `micro_config`, one head, "camera" (one trunk block, one

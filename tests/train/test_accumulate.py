@@ -14,8 +14,7 @@ import pytest
 import rvggt_jax
 from rvggt_jax import train
 from rvggt_jax.train import losses
-from rvggt_jax.config import CameraHeadConfig, DPTHeadConfig
-from tests.helpers.micro import micro_config
+from tests.helpers.micro import train_config
 
 SIZE = (28, 42)
 FRAMES = 2
@@ -45,17 +44,10 @@ def _batch(scenes: int = 2) -> dict:
 NOISE = 1e-6
 
 
-def _config():
-    """The micro layout at its smallest: 2 aggregator layers, a camera trunk of one block
-    and one iteration, the depth head (its masked means)."""
-    return micro_config(depth=2, enable_point=False, enable_track=False,
-                        camera_head=CameraHeadConfig(num_heads=2, trunk_depth=1, iters=1),
-                        dpt_head=DPTHeadConfig(features=8, out_channels=(4, 8, 16, 16),
-                                               intermediate_layer_idx=(0, 1, 1, 1)))
-
-
 def test_accumulated_step_equals_the_whole_batch():
-    config = _config()
+    # the micro layout at its smallest: 2 aggregator layers, a camera trunk of one block and
+    # one iteration, the depth head (its masked means)
+    config = train_config()
     params = rvggt_jax.init_params(config, 0)
     batch = _batch(2)
     tc = train.TrainConfig(learning_rate=1e-3, warmup_steps=0, total_steps=10)
@@ -72,6 +64,7 @@ def test_accumulated_step_equals_the_whole_batch():
                                         jax.tree.leaves(params), jax.tree.leaves(acc.params),
                                         jax.tree.leaves(whole.params)):
         ga, gw = np.asarray(ga, np.float64) / 0.1, np.asarray(gw, np.float64) / 0.1
+        p0 = np.asarray(p0, np.float64)  # (numpy: no program compiled per parameter shape)
         # (float32 rounding of the batch-size-dependent ops: ~1e-7 of the gradient's scale)
         assert np.abs(ga - gw).max() <= 1e-6 * scale, jax.tree_util.keystr(path)
         signal = np.abs(gw) > NOISE
@@ -117,7 +110,7 @@ def test_shared_denominators_make_micro_batch_losses_add_up():
     assert abs(float(naive) - float(whole)) > 1e-4 * abs(float(whole))  # the masks matter
     with pytest.raises(RuntimeError, match="means"):  # a different loss under the batch's counts
         with losses.shared_denominators(totals[:3]):
-            losses.vggt_loss(out, batch)
+            jax.eval_shape(losses.vggt_loss, out, batch)  # (traced: nothing compiled)
 
 
 def test_bad_accumulate_is_named(tmp_path):
