@@ -155,6 +155,15 @@ class VGGTConfig:
     # setting for bfloat16, whose float32 heads then take the platform's fast matmuls
     # (TF32 on a GPU) unless `jax_default_matmul_precision` says otherwise.
     matmul_precision: str | None = None
+    # Low-memory inference (`with_low_memory`; `rvggt plan --low-memory`): the dense outputs
+    # in 16 bits (depth and points float16, confidences bfloat16: a confidence 1 + exp(x)
+    # overflows float16 past x = 11), the camera head's weights stored like the
+    # aggregator's (`half_weight_heads`), and the layers the DPT heads read at their coarse levels (2 and 3)
+    # kept as those heads' reassembled maps instead of tokens (VGGT-1B: layer 23 as 2 x 256
+    # channels at a quarter of the positions, not 2048 channels of float32 stream and
+    # bf16 slot). docs/memory_layout.md ("Low-memory mode") has what each saves. An
+    # inference mode: a training step (remat) refuses it.
+    low_memory: bool = False
 
     def __post_init__(self):
         # remat=True / False (the flag it was before the policies) names a policy
@@ -162,6 +171,15 @@ class VGGTConfig:
             object.__setattr__(self, "remat", REMAT_OF_BOOL[bool(self.remat)])
 
     # ---- derived sizes -------------------------------------------------------------
+    @property
+    def half_weight_heads(self) -> tuple[str, ...]:
+        """The heads whose weights are stored in the aggregator's 16-bit dtype (they still
+        compute in float32): the camera head in the low-memory mode (0.8 of VGGT-1B's
+        1.0 GiB of float32 head weights). The DPT heads' stay float32: in bfloat16 they
+        moved the tiny fixture's depth confidence past twice upstream's own bf16
+        deviation (1.7e-2 against 1.6e-2)."""
+        return ("camera_head",) if self.low_memory else ()
+
     @property
     def head_dim(self) -> int:
         return self.embed_dim // self.num_heads
@@ -264,6 +282,10 @@ class VGGTConfig:
         True: "full", False: "none")."""
         return replace(self, remat=remat).validate()
 
+    def with_low_memory(self, on: bool = True) -> "VGGTConfig":
+        """A copy in (or out of) the low-memory inference mode (see the `low_memory` field)."""
+        return replace(self, low_memory=bool(on)).validate()
+
     def with_compression(self, name: str, **overrides: Any) -> "VGGTConfig":
         """A copy of this config with the named compression preset (see
         `rvggt_jax.compression.config.PRESETS`), fields overridden by name."""
@@ -282,6 +304,9 @@ class VGGTConfig:
         if self.attention in HALF_ONLY and self.dtype == "float32":
             raise ValueError(f"the {self.attention!r} attention kernel takes bfloat16 only: use dtype 'bfloat16', or "
                              f"attention 'auto' or 'blocked' for float32 (choices: {KERNELS})")
+        if self.low_memory and self.remat != "none":
+            raise ValueError(f"low_memory is an inference mode; a training step's remat ({self.remat!r}) keeps the "
+                             f"layers as tokens: use remat 'none' or low_memory False")
         if self.embed_dim % self.num_heads:
             raise ValueError(f"embed_dim {self.embed_dim} is not divisible by num_heads {self.num_heads}")
         if self.head_dim % 4:

@@ -72,7 +72,7 @@ def aggregator_forward(
             p = weights_after(p, after)
     out = kept.outputs(x, shape)
     for i, layer in projected.items():
-        out[i] = ProjectedLayer(layer.buf, layer.columns, layer.batch, out.get(i))
+        out[i] = ProjectedLayer(layer.buf, layer.columns, layer.batch, out.get(i), layer.tokens)
     return out, patch_tokens, saliency
 
 

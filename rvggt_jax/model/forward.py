@@ -89,13 +89,17 @@ def _head_projections(params: Params, config: VGGTConfig, grid, with_track: bool
     the kept layers anyway; a layer's size matters at inference lengths."""
     if config.remat != "none":
         return {}
-    readers = {name: (params[name], config.dpt_head.intermediate_layer_idx) for name, on in enabled.items() if on}
+    readers = {name: (params[name], config.dpt_head.intermediate_layer_idx, config.dpt_head.pos_embed)
+               for name, on in enabled.items() if on}
     if with_track:
-        readers["track_head"] = (params["track_head"]["feature_extractor"], config.track_layer_idx)
+        readers["track_head"] = (params["track_head"]["feature_extractor"], config.track_layer_idx, False)
     # (a returned layer is projected too, and also kept whole: the heads' values do not
     # depend on which layers are returned)
-    raw = {config.depth - 1} if config.enable_camera else set()
-    return head_projections(readers, grid, 2 * config.embed_dim, raw, per_group)
+    last = config.depth - 1
+    if config.low_memory:  # the camera head reads the last layer's camera token alone
+        return head_projections(readers, grid, 2 * config.embed_dim, (), per_group, reassembled=True,
+                                tokens={last: (0,)} if config.enable_camera else None)
+    return head_projections(readers, grid, 2 * config.embed_dim, {last} if config.enable_camera else set(), per_group)
 
 
 def frame_descriptors(patch_tokens: jax.Array, batch: int) -> jax.Array:
@@ -134,7 +138,7 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
     out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid,
-                           per_group))
+                           per_group, half_outputs=config.low_memory))
     if with_track:
         tracks, vis, conf = track_head(params["track_head"], agg, config.track_head_config, grid, query_points,
                                        shards=shards, remat=per_group)

@@ -100,20 +100,32 @@ class KeptLayer:
         return cls(*children, *aux)
 
 
+class Part(NamedTuple):
+    """A reader's columns of a `ProjectedLayer`: [first, first + width) of F. `hw` None:
+    the level map on the token grid, projected only; (h, w): the map already
+    reassembled (resized and at the fusion width, `dpt.reassemble`) on an h x w grid."""
+
+    first: int
+    width: int
+    hw: tuple[int, int] | None = None
+
+
 class Projection(NamedTuple):
     """What a layer's readers make of it first: `fn(tokens [N, P, 2C] float32) ->
-    [N, Q, F]` (Q: the patch tokens, F: every reader's columns side by side) and
-    `columns` ((reader, first column, width), ...): reader's part of F. `remat`: how a
-    group of frames runs in a training step (as the heads' groups:
-    `dpt.map_frame_groups`), or None."""
+    [N, Q, F]` (Q: positions, F: every reader's columns side by side) and `columns`
+    ((reader, `Part`), ...): reader's part of F. `remat`: how a group of frames runs in
+    a training step (as the heads' groups: `dpt.map_frame_groups`), or None. `tokens`:
+    token indices some other reader takes from the layer (the camera token, 0), kept
+    as [B, S, 2C] when the layer itself is not."""
 
     fn: Callable[[jax.Array], jax.Array]
-    columns: tuple[tuple[str, int, int], ...]
+    columns: tuple[tuple[str, Part], ...]
     remat: Callable | None = None
+    tokens: tuple[int, ...] = ()
 
     @property
     def width(self) -> int:
-        return sum(w for _, _, w in self.columns)
+        return sum(part.width for _, part in self.columns)
 
 
 # Bytes of the float32 tokens [G, P, 2C] `project_layer` reads per group of frames.
@@ -125,10 +137,13 @@ class ProjectedLayer:
     """A kept layer as its readers' first step made it (`project_layer`): `buf`
     [B*S, Q, F] in the compute dtype (16-bit ones as `HalfBuffer`), `columns` as in
     `Projection`, `batch` = (B, S). `raw` is the layer itself when something else reads it
-    too (returned layers), else None."""
+    too (returned layers), else None; `tokens` {index: [B, S, 2C] float32}, the tokens
+    `Projection.tokens` asked for."""
 
-    def __init__(self, buf, columns: tuple, batch: tuple[int, int], raw: "KeptLayer | None" = None):
+    def __init__(self, buf, columns: tuple, batch: tuple[int, int], raw: "KeptLayer | None" = None,
+                 tokens: dict | None = None):
         self.buf, self.columns, self.batch, self.raw = buf, columns, batch, raw
+        self.tokens = dict(tokens or {})
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -138,11 +153,11 @@ class ProjectedLayer:
     def ndim(self) -> int:
         return 4
 
-    def part(self, reader: str) -> tuple[int, int]:
-        """(first column, width) of `reader`'s projection."""
-        for name, start, width in self.columns:
+    def part(self, reader: str) -> Part:
+        """`reader`'s columns (first, width, and the grid of a reassembled map)."""
+        for name, part in self.columns:
             if name == reader:
-                return start, width
+                return part
         raise KeyError(f"this layer was projected for {[c[0] for c in self.columns]}, not for {reader!r}")
 
     def frames(self, start: jax.Array | int, count: int) -> jax.Array:
@@ -151,6 +166,8 @@ class ProjectedLayer:
                            ).astype(jnp.float32)
 
     def token(self, index: int) -> jax.Array:
+        if index in self.tokens:
+            return self.tokens[index]
         return self._raw().token(index)
 
     def array(self) -> jax.Array:
@@ -163,11 +180,11 @@ class ProjectedLayer:
         return self.raw
 
     def tree_flatten(self):
-        return (self.buf, self.raw), (self.columns, self.batch)
+        return (self.buf, self.raw, self.tokens), (self.columns, self.batch)
 
     @classmethod
     def tree_unflatten(cls, aux, children):
-        return cls(children[0], aux[0], aux[1], children[1])
+        return cls(children[0], aux[0], aux[1], children[1], children[2])
 
 
 def project_layer(layer: KeptLayer, projection: Projection, dtype, clear: bool = True
@@ -406,12 +423,14 @@ class KeptLayers:
             layer = KeptLayer(self.frame, self.global_, k)
         else:
             layer = KeptLayer(self.frame, x.reshape(1, b, s, p, c), k, 0, self.dtype)
+        # (before the projection's loop clears the layer's slots)
+        tokens = {t: layer.token(t) for t in projection.tokens}
         buf, layer = project_layer(layer, projection, self.dtype, clear=i not in self.keep)
         kept = self._with(frame=layer.frame_buf, global_=layer.global_buf if i <= self.writes_global else self.global_)
         # a buffer the loop only reads: the next scan starts after it (through one weight:
         # a dependency of the stream, x + 0, gets a buffer of its own)
         after = stored(buf) if (i in self.keep or i > self.writes_global) else None
-        return kept, ProjectedLayer(buf, projection.columns, (b, s)), after
+        return kept, ProjectedLayer(buf, projection.columns, (b, s), tokens=tokens), after
 
     def outputs(self, x: jax.Array, shape) -> dict[int, KeptLayer]:
         """{layer: `KeptLayer`} of the kept layers once the loop is done, x the final

@@ -212,11 +212,13 @@ def _load_orbax(ckpt_dir: Path, config: VGGTConfig, *, skip_track: bool, device_
     return params
 
 
-def cast_params(params: Mapping[str, Any], param_dtype: Any) -> dict:
+def cast_params(params: Mapping[str, Any], param_dtype: Any, heads: tuple[str, ...] = ()) -> dict:
     """The tree with the aggregator's weights (patch embed, frame and global blocks,
     tokens) in `param_dtype`; the heads' weights stay float32, since the heads compute in
-    float32 (upstream's autocast keeps them there). Works on arrays and on
-    `jax.ShapeDtypeStruct` leaves. float32 returns the tree unchanged."""
+    float32 (upstream's autocast keeps them there), except the subtrees named in `heads`
+    (the low-memory mode's `VGGTConfig.half_weight_heads`: stored in `param_dtype`, still
+    computing in float32). Works on arrays and on `jax.ShapeDtypeStruct` leaves. float32
+    returns the tree unchanged."""
     import jax
     import jax.numpy as jnp
 
@@ -231,7 +233,8 @@ def cast_params(params: Mapping[str, Any], param_dtype: Any) -> dict:
             return jax.ShapeDtypeStruct(leaf.shape, dt, sharding=getattr(leaf, "sharding", None))
         return leaf.astype(dt)
 
-    return {**params, "aggregator": jax.tree.map(cast, params["aggregator"])}
+    return {name: (jax.tree.map(cast, sub) if name == "aggregator" or name in heads else sub)
+            for name, sub in params.items()}
 
 
 def load_checkpoint(

@@ -16,7 +16,7 @@ from rvggt_jax.model.aggregator import aggregator_forward
 from rvggt_jax.model.forward import _head_projections
 from rvggt_jax.model.heads import dpt
 from rvggt_jax.model.heads.projections import head_projections
-from rvggt_jax.model.kept import ProjectedLayer
+from rvggt_jax.model.kept import Part, ProjectedLayer
 
 TOL = 1e-5
 BOTH = {"depth_head": True, "point_head": True}
@@ -32,16 +32,17 @@ def test_layers_narrower_as_projections_are_projected(tiny, golden):
     proj = _projections(params, config, golden["images"])
     # layers 17 and 23 are read at 32 + 32 = 64 channels, their full width (23 is the camera's too)
     assert {k: v.columns for k, v in proj.items()} == {
-        4: (("depth_head", 0, 8), ("point_head", 8, 8)), 11: (("depth_head", 0, 16), ("point_head", 16, 16))}
+        4: (("depth_head", Part(0, 8)), ("point_head", Part(8, 8))),
+        11: (("depth_head", Part(0, 16)), ("point_head", Part(16, 16)))}
     # the track head's extractor reads the same layers: its columns follow
     with_track = _projections(params, config, golden["images"], with_track=True)
-    assert with_track[4].columns[-1] == ("track_head", 16, 8) and with_track[11].width == 48
+    assert with_track[4].columns[-1] == ("track_head", Part(16, 8)) and with_track[11].width == 48
     # a training step with remat keeps the layers (`forward._head_projections`)
     grid = config.token_grid(golden["images"].shape[-2:])
     assert _head_projections(params, config.with_remat("full"), grid, False, BOTH) == {}
     # one head alone is narrower on every layer (32 of 64 on 17 and 23), but a layer read
     # raw (here 4; in the model the camera head's) is never projected
-    alone = head_projections({"depth_head": (params["depth_head"], (4, 11, 17, 23))},
+    alone = head_projections({"depth_head": (params["depth_head"], (4, 11, 17, 23), True)},
                                  config.token_grid(golden["images"].shape[-2:]), 64, raw={4})
     assert sorted(alone) == [11, 17, 23]
 
@@ -113,6 +114,6 @@ def test_a_projected_layer_names_what_is_missing(tiny, golden):
     with pytest.raises(ValueError, match="reader="):
         dpt.dpt_head(params["depth_head"], outs, config.dpt_head, config.token_grid(images.shape[-2:]))
     with pytest.raises(ValueError, match="unknown DPT reader"):
-        head_projections({"camera_head": (params["depth_head"], (4, 11, 17, 23))},
+        head_projections({"camera_head": (params["depth_head"], (4, 11, 17, 23), True)},
                              config.token_grid(images.shape[-2:]), 64)
     assert jnp.dtype(outs[4].buf.dtype) == jnp.float32

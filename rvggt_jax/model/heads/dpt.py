@@ -25,7 +25,7 @@ from rvggt_jax.model.heads.camera import inverse_log_transform
 from rvggt_jax.model.heads.conv import conv2d, conv_transpose_patchwise, relu_pointwise
 from rvggt_jax.model.heads.pos_embed import add_pos_embed, pos_embed_map
 from rvggt_jax.model.heads.resize import patchwise_conv3x3, resize_bilinear_align_corners, resized_conv3x3
-from rvggt_jax.model.kept import KeptLayer, ProjectedLayer
+from rvggt_jax.model.kept import KeptLayer, Part, ProjectedLayer
 from rvggt_jax.model.params import Params
 
 # A list of every aggregator layer's tokens, or a dict {layer index: tokens} holding at
@@ -106,29 +106,40 @@ def level_map(params: Params, level: int, tokens: jax.Array, patch_start_idx: in
     return conv2d(params["projects"][str(level)], _token_map(params, tokens, patch_start_idx, grid_hw))
 
 
+def reassemble(params: Params, level: int, x: jax.Array, image_hw: tuple[int, int], pos_embed: bool) -> jax.Array:
+    """A level map [N, h, w, out_channels[level]] (`level_map`) -> the level's input to
+    the fusion blocks [N, h', w', F]: the positional map when `pos_embed`, the resize to
+    the level's scale, then its layer_rn 3x3 conv."""
+    if pos_embed:
+        x = add_pos_embed(x, image_hw)
+    return conv2d(params["scratch"][f"layer{level + 1}_rn"], _resize_layer(params, level, x))
+
+
 def _fused_map(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
-               patch_size: int, pos_embed: bool, columns: Sequence[tuple[int, int] | None] = (None,) * 4,
+               patch_size: int, pos_embed: bool, columns: Sequence[Part | None] = (None,) * 4,
                upsampled: Mapping[int, Callable] | None = None) -> jax.Array:
     """Shared trunk of both modes on frames: 4 token sets [N, P, C] -> the fused map
     [N, 8h, 8w, F/2] (output_conv1's, before the final upsampling; (h, w) the token grid).
-    A layer with `columns` (first, width) is already projected ([N, h*w, F'], a
-    `ProjectedLayer`'s frames): the head's level map is those columns. `upsampled`:
-    {0: f, 1: f}, levels 0 and 1's transposed convs and their layer_rn convs as one map
-    (`patchwise_levels`, made outside the frame loop); None: every op in upstream's
-    float32 order (`_scratch_fuse`'s exact_order, the track head)."""
+    A layer with `columns` (a `kept.Part`) holds this head's first steps already
+    (`ProjectedLayer` frames [N, Q, F']): its level map, or with `Part.hw` the whole
+    reassembled level. `upsampled`: {0: f, 1: f}, levels 0 and 1's transposed convs and
+    their layer_rn convs as one map (`patchwise_levels`, made outside the frame loop);
+    None: every op in upstream's float32 order (`_scratch_fuse`'s exact_order, the track
+    head)."""
     grid_hw = (image_hw[0] // patch_size, image_hw[1] // patch_size)
     rn = []
     for i, (t, col) in enumerate(zip(tokens, columns)):
+        if col is not None and col.hw is not None:
+            rn.append(t[..., col.first:col.first + col.width].reshape(t.shape[0], *col.hw, col.width))
+            continue
         if col is None:
             x = level_map(params, i, t, patch_start_idx, grid_hw)
         else:
-            x = t[..., col[0]:col[0] + col[1]].reshape(t.shape[0], *grid_hw, col[1])
-        if pos_embed:
-            x = add_pos_embed(x, image_hw)
+            x = t[..., col.first:col.first + col.width].reshape(t.shape[0], *grid_hw, col.width)
         if upsampled is not None and i in upsampled:
-            rn.append(upsampled[i](x))
+            rn.append(upsampled[i](add_pos_embed(x, image_hw) if pos_embed else x))
         else:
-            rn.append(conv2d(params["scratch"][f"layer{i + 1}_rn"], _resize_layer(params, i, x)))
+            rn.append(reassemble(params, i, x, image_hw, pos_embed))
     return _scratch_fuse(params["scratch"], rn, exact_order=upsampled is None)
 
 
@@ -146,7 +157,7 @@ def _output_hw(image_hw: tuple[int, int], patch_size: int, down_ratio: int) -> t
 
 def _fused_features(params: Params, tokens: Sequence[jax.Array], image_hw: tuple[int, int], patch_start_idx: int,
                     patch_size: int, pos_embed: bool, down_ratio: int,
-                    columns: Sequence[tuple[int, int] | None] = (None,) * 4) -> jax.Array:
+                    columns: Sequence[Part | None] = (None,) * 4) -> jax.Array:
     """The feature-only trunk: `_fused_map` upsampled to
     [N, h*p/down, w*p/down, F] (plus the positional embedding when `pos_embed`)."""
     out = _fused_map(params, tokens, image_hw, patch_start_idx, patch_size, pos_embed, columns)
@@ -217,8 +228,7 @@ def _layers_read(aggregated: Aggregated, layer_idx: Sequence[int]) -> list[KeptL
             for t in (aggregated[i] for i in layer_idx)]
 
 
-def _columns(read: Sequence[KeptLayer | ProjectedLayer], reader: str | None
-             ) -> tuple[tuple[int, int] | None, ...]:
+def _columns(read: Sequence[KeptLayer | ProjectedLayer], reader: str | None) -> tuple[Part | None, ...]:
     """`reader`'s columns of each projected layer it reads (None: a layer of tokens)."""
     if reader is None and any(isinstance(t, ProjectedLayer) for t in read):
         raise ValueError(f"these layers hold DPT heads' projections: say which head this is (reader=, one of {READERS})")
@@ -355,13 +365,20 @@ def point_head(params: Params, aggregated: Aggregated, config: DPTHeadConfig, gr
                     conf_activation=POINT_ACTIVATIONS[1], reader="point_head")
 
 
+# The low-memory mode's 16-bit outputs (value, confidence): geometry in float16 (an 11-bit
+# mantissa; a normalised scene's depths and points are far inside its range), a
+# confidence 1 + exp(x) in bfloat16 (float16 overflows past x = 11)
+HALF_OUTPUTS = (jnp.float16, jnp.bfloat16)
+
+
 def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DPTHeadConfig, grid: TokenGrid,
-                remat: Callable | None = None) -> dict[str, jax.Array]:
+                remat: Callable | None = None, half_outputs: bool = False) -> dict[str, jax.Array]:
     """The depth and point heads whose params are given ({"depth_head": ...,
     "point_head": ...}, either or both) in one loop over groups of frames: {"depth",
     "depth_conf", "world_points", "world_points_conf"} as `depth_head` / `point_head`
     return them. One loop reads the kept aggregator layers once (two loops would each
-    need their own copy of them). `remat`: see `map_frame_groups`."""
+    need their own copy of them). `remat`: see `map_frame_groups`. `half_outputs`: each
+    group's values and confidences stored in `HALF_OUTPUTS` (float32 otherwise)."""
     if not ({"depth_head", "point_head"} & set(params)):
         return {}
     heads = {}
@@ -375,7 +392,10 @@ def dense_heads(params: Mapping[str, Params], aggregated: Aggregated, config: DP
                                                                        *POINT_ACTIVATIONS, _columns(read, "point_head"))
 
     def per_frames(tokens):
-        return {names: fn(tokens) for names, fn in heads.items()}
+        res = {names: fn(tokens) for names, fn in heads.items()}
+        if half_outputs:
+            res = {names: tuple(x.astype(dt) for x, dt in zip(pair, HALF_OUTPUTS)) for names, pair in res.items()}
+        return res
 
     res = map_frame_groups(per_frames, read, grid.image_hw, remat)
     return {name: value for names, pair in res.items() for name, value in zip(names, pair)}
