@@ -61,9 +61,15 @@ def readme_first_commands() -> list[list[str]]:
     return [c for line in block.splitlines()[:2] for c in _commands(line)]
 
 
+# .ci/run's second step (the GPU check's dry run in an environment of its own) starts here
+CI_SECOND_STEP = "# Second step:"
+
+
 def ci_commands() -> list[list[str]]:
-    """What .ci/run runs after making its virtual environment (less pip's own upgrade)."""
-    lines = (REPO / ".ci" / "run").read_text().split(". .venv/bin/activate\n", 1)[1].splitlines()
+    """What .ci/run runs after making its virtual environment (less pip's own upgrade),
+    up to its second step."""
+    text = (REPO / ".ci" / "run").read_text().split(". .venv/bin/activate\n", 1)[1]
+    lines = text.split(CI_SECOND_STEP, 1)[0].splitlines()
     return [c for line in lines for c in _commands(line) if c and c[-2:] != ["--upgrade", "pip"]]
 
 

@@ -31,6 +31,12 @@ The name is data: `VGGTConfig.attention` reaches every aggregator attention thro
 when JAX's CUDA plugin and cuDNN are installed, the TPU kernel when libtpu is): a CPU-only
 install traces the blocked kernel alone.
 
+JAX's private and experimental API (the Pallas TPU kernel, cuDNN's rules for the
+log-sum-exp form, the cuDNN version check of "auto") is feature-checked before use
+(`kernels.fused.missing_private_api`: the module, the attributes, the signatures as
+called): on a JAX where it is missing or changed, the kernel that needs it is replaced
+by the blocked kernel with a RuntimeWarning that names what is missing.
+
 Precision: q, k, v in the compute dtype (float32 or bfloat16); logits, softmax
 statistics and the value accumulation in float32; the result in q's dtype.
 
@@ -56,10 +62,11 @@ import numpy as np
 
 from rvggt_jax.ops.kernels import blocked
 from rvggt_jax.ops.kernels.blocked import blocked_attention
-from rvggt_jax.ops.kernels.fused import (CUDNN_MAX_HEAD_DIM, cudnn_lse_available, fused_attention,
-                                         fused_attention_with_lse)
+from rvggt_jax.ops.kernels.fused import (CUDNN_MAX_HEAD_DIM, CUDNN_MODULE, cudnn_lse_missing, fused_attention,
+                                         fused_attention_with_lse, missing_private_api)
 from rvggt_jax.ops.kernels.names import HALF_ONLY, KERNELS
-from rvggt_jax.ops.kernels.tpu_flash import lse_available as tpu_lse_available
+from rvggt_jax.ops.kernels.tpu_flash import flash_missing as tpu_flash_missing
+from rvggt_jax.ops.kernels.tpu_flash import lse_missing as tpu_lse_missing
 from rvggt_jax.ops.kernels.tpu_flash import tpu_flash_attention, tpu_flash_attention_with_lse
 
 IMPLEMENTATIONS = KERNELS
@@ -96,15 +103,35 @@ def compilable_platforms() -> tuple[str, ...]:
     kernels can be traced here: "cuda" with JAX's CUDA plugin and cuDNN's libraries,
     "tpu" with libtpu (the `[plan]` extra installs both)."""
     platforms = []
-    try:
+    # cuDNN's presence is asked of JAX's private cuDNN module (JAX's own cuDNN attention
+    # asks it when traced); a JAX without that function cannot say, and "auto" then takes
+    # the blocked kernel on NVIDIA GPUs too: said where a CUDA plugin is installed
+    missing = missing_private_api(CUDNN_MODULE, (("check_cudnn_version", 0, ()),))
+    if missing is None:
         from jax._src.cudnn.fused_attention_stablehlo import check_cudnn_version
-        check_cudnn_version()
-        platforms.append("cuda")
-    except Exception:  # noqa: BLE001 - no CUDA plugin or no cuDNN: nothing to compile for
-        pass
+        try:
+            check_cudnn_version()
+            platforms.append("cuda")
+        except Exception:  # noqa: BLE001 - no CUDA plugin or no cuDNN: nothing to compile for
+            pass
+    elif _cuda_plugin_installed():
+        warnings.warn(f"this JAX ({jax.__version__}) cannot be asked whether cuDNN is installed ({missing}; "
+                      "written against JAX 0.10-0.11): 'auto' attention takes the blocked kernel on NVIDIA GPUs "
+                      "(memory bounded, slower); implementation='cudnn' still asks for cuDNN",
+                      RuntimeWarning, stacklevel=2)
     if importlib.util.find_spec("libtpu") is not None:
         platforms.append("tpu")
     return tuple(platforms)
+
+
+def _cuda_plugin_installed() -> bool:
+    for name in ("jax_cuda12_plugin", "jax_cuda13_plugin"):
+        try:
+            if importlib.util.find_spec(name) is not None:
+                return True
+        except (ImportError, ValueError):  # a stand-in in sys.modules (app.xla_cpu): not for this process
+            pass
+    return False
 
 
 def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None = None, *,
@@ -121,7 +148,26 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | No
     bias32 = None if key_bias is None else key_bias.astype(jnp.float32)
     block_bytes = blocked.LOGITS_BLOCK_BYTES if block_bytes is None else block_bytes
     return _dispatch(implementation, q, lambda name: functools.partial(
-        KERNELS_BY_NAME[name], q, k, v, bias32, scale, block_bytes))
+        KERNELS_BY_NAME[_usable(name)], q, k, v, bias32, scale, block_bytes))
+
+
+def _usable(name: str) -> str:
+    """Kernel `name`, or the blocked kernel (with a warning saying what is missing) where
+    this JAX lacks what `name` calls of JAX's experimental or private modules (`_missing`)."""
+    missing = _missing(name)
+    if missing is None:
+        return name
+    warnings.warn(f"this JAX ({jax.__version__}) lacks what the {name!r} attention kernel calls ({missing}; "
+                  "written against JAX 0.10-0.11): the blocked kernel runs instead (memory bounded, slower)",
+                  RuntimeWarning, stacklevel=4)
+    return "blocked"
+
+
+@functools.cache
+def _missing(name: str) -> str | None:
+    """What of JAX's experimental or private API kernel `name`'s forward calls this JAX
+    lacks, or None (cuDNN's forward is `jax.nn.dot_product_attention`, public)."""
+    return tpu_flash_missing() if name == "tpu_flash" else None
 
 
 def _check(implementation: str, q, k, v, key_bias) -> None:
@@ -169,17 +215,26 @@ def _with_lse(name: str, q, k, v, bias32, scale: float, block_bytes: int, out_dt
     accelerator kernels' log-sum-exp forms call JAX-private functions: on a JAX without
     them, the blocked kernel (memory bounded, slower), with a warning."""
     if name != "blocked" and not _lse_available(name):
-        warnings.warn(f"this JAX ({jax.__version__}) lacks the private functions of the {name!r} kernel's "
-                      "log-sum-exp form (written against JAX 0.10): ring attention takes the blocked kernel",
+        missing = _lse_missing(name) or "its private functions"
+        warnings.warn(f"this JAX ({jax.__version__}) lacks what the {name!r} kernel's log-sum-exp form calls "
+                      f"({missing}; written against JAX 0.10-0.11): ring attention takes the blocked kernel",
                       RuntimeWarning, stacklevel=3)
         name = "blocked"
     out, lse = KERNELS_WITH_LSE_BY_NAME[name](q, k, v, bias32, scale, block_bytes, out_dtype)
     return out.astype(out_dtype), lse
 
 
-@functools.cache
 def _lse_available(name: str) -> bool:
-    return tpu_lse_available() if name == "tpu_flash" else name == "xla" or cudnn_lse_available()
+    return _lse_missing(name) is None
+
+
+@functools.cache
+def _lse_missing(name: str) -> str | None:
+    """What of JAX's private API kernel `name`'s log-sum-exp form calls this JAX lacks, or
+    None ("xla" and "blocked" call none)."""
+    if name == "tpu_flash":
+        return tpu_lse_missing()
+    return cudnn_lse_missing() if name == "cudnn" else None
 
 
 def _blocked(q, k, v, bias32, scale: float, block_bytes: int, out_dtype: Any = None):

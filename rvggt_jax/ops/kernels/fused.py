@@ -11,6 +11,8 @@ multiple of 8 for cuDNN (D = 64 + the bias column would be 65).
 from __future__ import annotations
 
 import functools
+import importlib
+import inspect
 import math
 from typing import Any
 
@@ -189,21 +191,72 @@ def _with_lse_bwd(scale, dv, implementation, res, cotangents):
 _with_lse.defvjp(_with_lse_fwd, _with_lse_bwd)
 
 
-def cudnn_lse_available() -> bool:
-    """Whether this JAX has the cuDNN rules `fused_attention_with_lse` calls (private to
-    JAX; written against 0.10)."""
+# What `_cudnn_forward` and `_cudnn_backward` take from JAX's private cuDNN module, and
+# how they call it: (function, positional arguments, keyword names), checked by binding the
+# call to the function's signature (`missing_private_api`). Written against JAX 0.10.2;
+# the same in 0.11 (docs/accelerators.md).
+CUDNN_MODULE = "jax._src.cudnn.fused_attention_stablehlo"
+CUDNN_LSE_CALLS = (
+    ("_dot_product_attention_fwd_rule", 10, ("scale", "seed", "dropout_rate", "variadic_args", "mask_type", "layout",
+                                             "sliding_window_length", "cudnn_version", "return_residual")),
+    ("_dot_product_attention_bwd_rule", 11, ()),
+    ("check_cudnn_version", 0, ()),
+)
+CUDNN_LSE_ATTRS = ("MaskType.NO_MASK", "AttentionLayout.BTNH")
+_ABSENT = object()
+
+
+def missing_private_api(module: str, calls: tuple[tuple[str, int, tuple[str, ...]], ...] = (),
+                        attrs: tuple[str, ...] = ()) -> str | None:
+    """What this code needs of a JAX-private `module` and does not find, in words, or None
+    when all of it is there: the module itself, each dotted attribute of `attrs`, each
+    function of `calls` (dotted name, number of positional arguments, keyword names) and
+    whether its signature takes that call. A function whose signature cannot be read
+    counts as taking it (nothing better is known)."""
     try:
-        cudnn = _cudnn_rules()
-    except ImportError:
-        return False
-    return all(hasattr(cudnn, n) for n in ("_dot_product_attention_fwd_rule", "_dot_product_attention_bwd_rule",
-                                           "MaskType", "AttentionLayout", "check_cudnn_version"))
+        mod = importlib.import_module(module)
+    except Exception as e:  # noqa: BLE001 - ImportError, or whatever the module raises on import
+        return f"{module} does not import ({type(e).__name__}: {e})"
+
+    def resolve(dotted):
+        obj = mod
+        for part in dotted.split("."):
+            obj = getattr(obj, part, _ABSENT)
+            if obj is _ABSENT:
+                return _ABSENT
+        return obj
+
+    for dotted in attrs + tuple(c[0] for c in calls):
+        if resolve(dotted) is _ABSENT:
+            return f"{module} has no {dotted}"
+    for name, positional, keywords in calls:
+        try:
+            sig = inspect.signature(resolve(name))
+        except (TypeError, ValueError):
+            continue
+        try:
+            sig.bind(*range(positional), **dict.fromkeys(keywords))
+        except TypeError as e:
+            taken = f"{positional} positional argument(s)" + (f" and {', '.join(keywords)}" if keywords else "")
+            return f"{module}.{name}{sig} does not take {taken} ({e})"
+    return None
+
+
+def cudnn_lse_missing() -> str | None:
+    """What of JAX's private cuDNN rules `fused_attention_with_lse` calls this JAX lacks
+    (None: all there). `ops.attention` then gives the ring the blocked kernel, with a
+    warning that says this."""
+    return missing_private_api(CUDNN_MODULE, CUDNN_LSE_CALLS, CUDNN_LSE_ATTRS)
+
+
+def cudnn_lse_available() -> bool:
+    """Whether this JAX has the cuDNN rules `fused_attention_with_lse` calls, as it calls
+    them (private to JAX: `cudnn_lse_missing`)."""
+    return cudnn_lse_missing() is None
 
 
 def _cudnn_rules():
-    from jax._src.cudnn import fused_attention_stablehlo as cudnn  # noqa: PLC0415 - CUDA installs only
-
-    return cudnn
+    return importlib.import_module(CUDNN_MODULE)
 
 
 def _cudnn_args(q, scale):

@@ -16,12 +16,22 @@ import math
 import jax
 import jax.numpy as jnp
 
-from rvggt_jax.ops.kernels.fused import fold_key_bias
+from rvggt_jax.ops.kernels.fused import fold_key_bias, missing_private_api
 
 # the kernel's sequence block (its BlockSizes defaults) and largest unpadded head dim
 BLOCK = 128
 MAX_HEAD_DIM = 128
 HEAD_MULTIPLE = 8
+
+# What this module calls in JAX's experimental Pallas kernel, and how: (function,
+# positional arguments, keyword names), checked against the signatures
+# (`fused.missing_private_api`). Written against JAX 0.10.2; the same in 0.11.
+PALLAS_MODULE = "jax.experimental.pallas.ops.tpu.flash_attention"
+FLASH_CALLS = (("flash_attention", 3, ("sm_scale",)),)
+_BWD = ("block_q_major", "block_k_major", "block_k", "sm_scale", "causal", "mask_value", "debug")
+LSE_CALLS = (("_flash_attention_impl", 13, ()), ("_flash_attention_bwd_dkv", 9, _BWD + ("block_q",)),
+             ("_flash_attention_bwd_dq", 9, _BWD), ("BlockSizes.get_default", 5, ()))
+LSE_ATTRS = ("DEFAULT_MASK_VALUE",)
 
 
 def tpu_flash_attention(q: jax.Array, k: jax.Array, v: jax.Array, key_bias: jax.Array | None, scale: float,
@@ -65,15 +75,22 @@ def tpu_flash_attention_with_lse(q: jax.Array, k: jax.Array, v: jax.Array, key_b
     return out.transpose(0, 2, 1, 3)[:, :nq, :, :v.shape[-1]].astype(q.dtype), lse.transpose(0, 2, 1)[:, :nq]
 
 
+def flash_missing() -> str | None:
+    """What of the Pallas kernel's entry point `tpu_flash_attention` calls this JAX lacks
+    (None: all there); `ops.attention` then takes the blocked kernel, with a warning."""
+    return missing_private_api(PALLAS_MODULE, FLASH_CALLS)
+
+
+def lse_missing() -> str | None:
+    """What of the Pallas kernel's private functions `_flash_with_lse` calls this JAX
+    lacks (None: all there); `ops.attention` then gives the ring the blocked kernel."""
+    return missing_private_api(PALLAS_MODULE, LSE_CALLS, LSE_ATTRS)
+
+
 def lse_available() -> bool:
-    """Whether this JAX has the Pallas kernel's functions `_flash_with_lse` calls (private
-    to JAX; written against 0.10)."""
-    try:
-        from jax.experimental.pallas.ops.tpu import flash_attention as pallas_flash
-    except ImportError:
-        return False
-    return all(hasattr(pallas_flash, n) for n in ("_flash_attention_impl", "_flash_attention_bwd_dkv",
-                                                  "_flash_attention_bwd_dq", "BlockSizes"))
+    """Whether this JAX has the Pallas kernel's functions `_flash_with_lse` calls, as it
+    calls them (`lse_missing`)."""
+    return lse_missing() is None
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
