@@ -36,7 +36,8 @@ def kv_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: LayerP
         valid = jnp.concatenate([jnp.ones((b, fixed.size), bool), ok], axis=1)
         log_g = log_sizes(jnp.ones(valid.shape, jnp.float32), valid)
     kk, vv = rows_kv(p_block, x, sel, pos, config, state.shards, plan.per_frame)
-    check_shapes(plan, comp, x.shape[1], kk, log_g)
+    # (the plan counts the whole sequence's queries; x holds this device's frames)
+    check_shapes(plan, comp, x.shape[1] // state.shards.local * state.shards.frames, kk, log_g)
     cfg = layers.BlockConfig.of(config)
     return layers.chunked_block(p_block, x, lambda *tc: layers.attention_to(p_block, cfg, kk, vv, log_g, *tc),
                                 (pos.cos, pos.sin), cfg)

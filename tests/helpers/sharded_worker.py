@@ -178,7 +178,7 @@ def main() -> None:
     # protected tokens' own queries, replicated on every device, and their own rows)
     frames = 8
     cases = [(4, "dense", True), (4, "regime", True), (4, "fastvggt", False),
-             (3, "dense", False), (3, "regime", True), (3, "regime+dup", False)]
+             (3, "dense", False), (3, "regime", True), (3, "regime+dup", False), (4, "avggt", False)]
     refs = {}
     for devices, preset, track in cases:
         uneven = frames % devices != 0

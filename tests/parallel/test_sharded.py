@@ -33,7 +33,9 @@ def test_four_devices(report):
     assert report["devices"] == 4
 
 
-@pytest.mark.parametrize("case", range(6))
+# (the last case, avggt's K/V-downsampled layers, once failed to trace over devices: their
+# shape check counted this device's queries against the plan's whole sequence)
+@pytest.mark.parametrize("case", range(7))
 def test_sharded_equals_single_device(report, case):
     run = report["runs"][case]
     bad = {k: e for k, e in run["errors"].items() if not e <= TOL}
@@ -55,7 +57,9 @@ def test_one_compilation_per_shape(report):
     assert report["recompiled"] == 0, "a second call with the same shapes compiled again"
 
 
-@pytest.mark.parametrize("case", range(6))
+# (the last case, avggt's K/V-downsampled layers, once failed to trace over devices: their
+# shape check counted this device's queries against the plan's whole sequence)
+@pytest.mark.parametrize("case", range(7))
 def test_outputs_stay_sharded(report, case):
     assert report["runs"][case]["sharded"]
 
