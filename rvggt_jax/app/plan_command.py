@@ -4,9 +4,14 @@ the target without the device (nothing runs, no weights needed).
     rvggt plan --frames 1000 --target h200 --preset regime --dtype bfloat16
     rvggt plan --frames 300 --height 392 --width 518 --target rtx4090 --dtype bfloat16
     rvggt plan --frames 1000 --target tpu-v6e --devices 4
+    rvggt plan --frames 100 --target h100 --memory-gb 16 --dtype bfloat16   # a 16 GB card, H100's compiler
+    rvggt plan --frames 1000 --target h100 --preset regime --dtype bfloat16 --param-dtype bfloat16 --low-memory
 
 Exit status: 0 when it fits, 3 when it does not (alternatives are printed), 2 for bad
 arguments, 1 when the planning itself fails (e.g. the compilers are not installed).
+Besides the memory, the plan prints how long the forward is estimated to take on the
+target (`planning.target_time`: the FLOPs at its peak and an assumed efficiency) and,
+over several devices, what each sends around the ring per global layer.
 Progress goes to stderr while XLA compiles (a TPU plan of VGGT-1B takes minutes); the
 plan, one verdict and the alternatives to stdout. An alternative is "fits" only when it
 was compiled ("planned") and fits; the others are estimates with their size (the
@@ -67,6 +72,14 @@ def add_plan_parser(sub) -> None:
                    help="attention kernel (default auto: the target's; see docs/accelerators.md)")
     p.add_argument("--config", default=None, metavar="JSON",
                    help="a model config.json (default: VGGT-1B's layout)")
+    p.add_argument("--low-memory", action="store_true",
+                   help="the low-memory inference mode (VGGTConfig.with_low_memory: 16-bit outputs, the camera "
+                        "head's weights in 16 bits with --param-dtype bfloat16, the DPT heads' coarse levels kept "
+                        "reassembled; docs/memory_layout.md)")
+    p.add_argument("--memory-gb", type=float, default=None, metavar="G",
+                   help="hold the plan against G GiB per device instead of the target's own memory (a smaller "
+                        "card planned with the target's compiler: --target h100 --memory-gb 16); the verdict and "
+                        "the exit status follow G")
     p.add_argument("--check-suggestions", "--verify", dest="check_suggestions", action="store_true",
                    help="when it does not fit, compile the estimated alternatives (--frames N, --devices N) "
                         "too: one compile each, up to four (without it only the combined settings are compiled)")
@@ -98,6 +111,9 @@ def _config(args: argparse.Namespace):
     for name in ("frames", "batch", "devices"):
         if getattr(args, name) < 1:
             _fail(f"--{name} must be at least 1; got {getattr(args, name)}")
+    gib = getattr(args, "memory_gb", None)
+    if gib is not None and not (math.isfinite(gib) and gib > 0):
+        _fail(f"--memory-gb must be a positive number of GiB; got {gib:g}")
     from rvggt_jax.diagnostics.presets_io import is_preset_path
 
     if not is_preset_path(args.preset) and args.preset not in known_presets():
@@ -117,7 +133,8 @@ def _config(args: argparse.Namespace):
         from rvggt_jax.diagnostics.presets_io import resolve_preset
 
         base = dataclasses.replace(base, compression=resolve_preset(args.preset, base.depth))
-        return base.with_dtype(args.dtype).with_attention(args.attention)
+        config = base.with_dtype(args.dtype).with_attention(args.attention)
+        return config.with_low_memory() if getattr(args, "low_memory", False) else config
     except ValueError as e:
         _fail(str(e))
 
@@ -148,8 +165,9 @@ def _share(n: int, have: int) -> str:
 def _describe(rep, target, label: str) -> list[str]:
     """The plan's lines: what was planned, for what, and its parts."""
     per = f" (per device, {rep.devices} devices)" if rep.devices > 1 else ""
+    mode = ", low-memory mode" if rep.low_memory else ""
     lines = [f"{label}, {rep.batch} x {rep.frames} frames of {rep.height} x {rep.width} ({rep.image_dtype}), "
-             f"preset {rep.preset}, {rep.dtype} (weights {rep.param_dtype})",
+             f"preset {rep.preset}, {rep.dtype} (weights {rep.param_dtype}){mode}",
              f"  target       {target.name}: {target.title}, compiled for {target.described_by} "
              f"({rep.device_kind}){per}"]
     if target.note:
@@ -178,23 +196,58 @@ def _describe(rep, target, label: str) -> list[str]:
     return lines
 
 
+def held_against(rep, gib: float | None):
+    """`rep` held against `gib` GiB (--memory-gb) instead of its target's memory (None: as
+    it is). A program XLA:TPU compiled was checked against the chip's HBM: `judge` reads
+    its heap-simulation peak when G is less."""
+    if gib is None:
+        return rep
+    what = f"--memory-gb {gib:g}, instead of {fmt_bytes(rep.memory_bytes)} ({rep.memory_what or rep.target})"
+    return dataclasses.replace(rep, memory_bytes=int(gib * 2 ** 30), memory_what=what,
+                               own_memory_bytes=rep.memory_bytes)
+
+
 def judge(rep) -> tuple[bool, str, str]:
     """(fits, figure, what decides) of a report held against a known memory. One figure:
     XLA:TPU's refusal or heap-simulation peak (it compiles only what fits its HBM), else
-    XLA's planned total against the memory; a plan that fits never shows a share over 100%."""
+    XLA's planned total against the memory; a plan that fits never shows a share over 100%.
+    Held against less than the chip's HBM (--memory-gb, `held_against`), a program XLA:TPU
+    compiled is judged by its heap-simulation peak (by its total, an upper bound, when
+    XLA:TPU gave none); against more, a refused one by the size XLA:TPU said it needs."""
     have, mem = fmt_bytes(rep.memory_bytes), rep.memory_bytes
     if rep.exhausted:
-        return (False, f"needs {fmt_bytes(rep.needed_bytes)} of {have}{_share(rep.needed_bytes, mem)}",
+        need = rep.needed_bytes
+        if need <= mem:  # (--memory-gb above the chip's HBM)
+            return (True, f"needs {fmt_bytes(need)} of {have}{_share(need, mem)}",
+                    "the size XLA:TPU said it needs when it refused the chip's HBM decides")
+        return (False, f"needs {fmt_bytes(need)} of {have}{_share(need, mem)}",
                 "XLA:TPU refused to compile it: its own HBM check decides")
     if rep.compiler_checked:
         peak = rep.peak_bytes
+        hbm = rep.own_memory_bytes or mem  # what XLA:TPU compiled it for
+        if mem < hbm:  # (--memory-gb below the HBM XLA:TPU compiled it for: its check says nothing of G)
+            figure, decides = ((peak, "XLA:TPU's heap-simulation peak decides") if peak else
+                               (rep.total_bytes, "XLA:TPU's total decides, an upper bound: it may fit"))
+            if figure <= mem:
+                return (True, f"{fmt_bytes(figure)} of {have}{_share(figure, mem)}, {fmt_bytes(mem - figure)} to "
+                              f"spare", decides)
+            return (False, f"needs {fmt_bytes(figure)} of {have}{_share(figure, mem)}, short by "
+                           f"{fmt_bytes(figure - mem)}", decides)
         shown = f", heap-simulation peak {fmt_bytes(peak)}{_share(peak, mem)}" if peak and peak <= mem else ""
+        if hbm < mem:  # (--memory-gb above it)
+            return (True, f"compiled for the chip's {fmt_bytes(hbm)} of HBM, within the {have} held against{shown}",
+                    "XLA:TPU's own HBM check decides, not the total")
         return True, f"compiled for the {have} of HBM{shown}", "XLA:TPU's own HBM check decides, not the total"
     total, spare = rep.total_bytes, rep.headroom_bytes
     figure = f"{fmt_bytes(total)} of {have}{_share(total, mem)}"
-    if rep.fits:
+    if spare >= 0:
         return True, f"{figure}, {fmt_bytes(spare)} to spare", "XLA's planned total decides"
     return False, f"needs {figure}, short by {fmt_bytes(-spare)}", "XLA's planned total decides"
+
+
+def fits(rep) -> bool | None:
+    """Whether the plan fits the memory it is held against (`judge`); None when unknown."""
+    return None if rep.memory_bytes is None else judge(rep)[0]
 
 
 def verdict(rep) -> str:
@@ -296,7 +349,7 @@ def alternatives(args, rep, target, config, plan=None) -> list[Suggestion]:
                         f"the alternative {Suggestion(changes, '').options}")
         tips.append(Suggestion(changes, planned_label(combined), "every setting that saves memory, combined"))
     tips += scaling(rep, target, param_bytes(config, rep.param_dtype), {})
-    if combined is not None and not combined.fits:
+    if combined is not None and not fits(combined):
         tips += scaling(combined, target, param_bytes(combined_config, combined.param_dtype), changes)
     if args.check_suggestions:
         for tip in tips:
@@ -309,7 +362,7 @@ def alternatives(args, rep, target, config, plan=None) -> list[Suggestion]:
 def memory_fraction_note(rep, target) -> str | None:
     """For a GPU plan that fits but needs more than JAX's default share of the card: the
     XLA_PYTHON_CLIENT_MEM_FRACTION to run with (None otherwise)."""
-    if target.platform != "cuda" or not rep.fits or rep.total_bytes <= JAX_GPU_FRACTION * rep.memory_bytes:
+    if target.platform != "cuda" or not fits(rep) or rep.total_bytes <= JAX_GPU_FRACTION * rep.memory_bytes:
         return None
     need = math.ceil(100 * rep.total_bytes / rep.memory_bytes) / 100
     return (f"note: JAX lets XLA use {JAX_GPU_FRACTION:.0%} of a GPU's memory unless told otherwise: run with "
@@ -369,7 +422,32 @@ def plan_once(args: argparse.Namespace, config, target, what: str):
         _fail(str(e))
     done = "refused by XLA:TPU (more than its HBM)" if rep.exhausted else "compiled"
     say(f"  {done} in {_elapsed(time.perf_counter() - t0)}")
-    return rep
+    return held_against(rep, getattr(args, "memory_gb", None))
+
+
+def speed_lines(args: argparse.Namespace, config, target) -> list[str]:
+    """The plan's time estimate and, over several devices, its ring lines
+    (`planning.target_time`); an estimate that cannot be made is said, never fatal."""
+    from rvggt_jax.planning.cost import ring_exchange
+    from rvggt_jax.planning.target_time import ring_lines, time_estimate, time_line
+
+    lines = []
+    try:
+        est = time_estimate(config, args.frames, args.height, args.width, target, batch=args.batch,
+                            devices=args.devices)
+        lines.append(time_line(est, target) if est is not None else
+                     f"  time (estimate) n/a: the peak FLOP/s of {target.name} is not known here")
+        if args.devices > 1 and target.platform == "cpu":
+            lines.append(f"               ({args.devices} host devices share this CPU: split over them, the forward "
+                         f"is no faster)")
+    except Exception as e:  # noqa: BLE001 - an estimate is advice: it never stops a plan
+        lines.append(f"  time (estimate) n/a: {type(e).__name__}: {e}")
+    try:
+        lines += ring_lines(ring_exchange(config, args.frames, args.height, args.width, args.devices, args.batch),
+                            target, args.devices)
+    except Exception as e:  # noqa: BLE001
+        lines.append(f"  ring         n/a: {type(e).__name__}: {e}")
+    return lines
 
 
 def run_plan_command(args: argparse.Namespace) -> int:
@@ -391,13 +469,14 @@ def run_plan_command(args: argparse.Namespace) -> int:
     except ValueError as e:  # devices the target cannot have
         _fail(str(e))
     label = "VGGT-1B" if args.config is None else f"the model of {args.config}"
+    speed = speed_lines(args, config, target)  # (before the compile: seconds, where a TPU compile takes minutes)
     rep = plan_once(args, config, target, "the forward")
-    print("\n".join(_describe(rep, target, label)), flush=True)
-    if rep.fits is None:
+    print("\n".join(_describe(rep, target, label) + speed), flush=True)
+    if fits(rep) is None:
         print(f"memory of {target.name} unknown here: nothing to hold the plan against", flush=True)
         return 0
     print(verdict(rep), flush=True)
-    if rep.fits:
+    if fits(rep):
         note = memory_fraction_note(rep, target)
         if note:
             print(note, flush=True)

@@ -73,6 +73,10 @@ class MemoryReport:
     peak_bytes: int | None = None
     compiler_checked: bool = False  # compiled by a compiler that refuses what exceeds the memory
     fallback: str | None = None
+    # the target's own memory when `memory_bytes` is another the plan is held against
+    # (`rvggt plan --memory-gb`); None: memory_bytes is the target's
+    own_memory_bytes: int | None = None
+    low_memory: bool = False  # planned in the low-memory mode (`VGGTConfig.low_memory`)
 
     @property
     def exhausted(self) -> bool:
@@ -125,12 +129,13 @@ class MemoryReport:
 
 def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:
     """The converted parameter tree of `config` as `jax.ShapeDtypeStruct` leaves (the
-    aggregator's in `param_dtype`, as `load_pretrained(..., param_dtype=...)` loads it)."""
+    aggregator's in `param_dtype`, as `load_pretrained(..., param_dtype=...)` loads it; in
+    the low-memory mode the camera head's too: `VGGTConfig.half_weight_heads`)."""
     from rvggt_jax.weights.converter import expected_param_shapes
     from rvggt_jax.weights.checkpoint import cast_params
 
     tree = expected_param_shapes(config, skip_track=not (with_track and config.enable_track))
-    return cast_params(tree, param_dtype)
+    return cast_params(tree, param_dtype, heads=config.half_weight_heads)
 
 
 def attention_kernel(program_text: str) -> str:
@@ -182,7 +187,7 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), image_dtype)
     queries = jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32) if with_track else None
     fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, image_dtype=image_dtype.name,
-                  param_dtype=param_dtype, preset=config.compression.name)
+                  param_dtype=param_dtype, preset=config.compression.name, low_memory=config.low_memory)
     if target is not None:
         return _target_report(config, params, images, queries, get_target(target), devices, fields, progress)
     t0 = time.perf_counter()

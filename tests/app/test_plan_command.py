@@ -58,6 +58,25 @@ def test_a_plan_that_does_not_fit_exits_3_saying_what_would(capsys, config_json,
     assert "compiling the alternative --dtype bfloat16 --preset regime for cpu" in err
 
 
+def _bytes(out: str, part: str) -> float:
+    value, unit = re.search(rf"{part} +([\d.]+) (GiB|MiB|KiB)", out).groups()
+    return float(value) * {"GiB": 2 ** 30, "MiB": 2 ** 20, "KiB": 2 ** 10}[unit]
+
+
+def test_low_memory_plans_the_low_memory_mode(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "4")
+    path = tmp_path / "config.json"
+    plan_config("depth").to_json(path)  # (a depth head: its outputs are what the mode halves)
+    args = ["--frames", "8", *SMALL, "--target", "cpu", "--config", str(path)]
+    code, default, err = _plan(capsys, *args)
+    assert code == 0, err
+    code, low, err = _plan(capsys, *args, "--low-memory")
+    assert code == 0, err
+    assert "low-memory mode" in low and "low-memory mode" not in default
+    # float16 / bfloat16 outputs: half the bytes of the dense outputs (the pose stays float32)
+    assert _bytes(low, "outputs") < 0.6 * _bytes(default, "outputs"), (low, default)
+
+
 def _report(**kw) -> MemoryReport:
     base = dict(frames=1000, height=392, width=518, batch=1, dtype="bfloat16", param_dtype="bfloat16",
                 preset="regime", argument_bytes=None, output_bytes=None, temp_bytes=None, alias_bytes=None,
