@@ -31,11 +31,13 @@ import sys
 import threading
 import time
 
+from rvggt_jax.app.plan_verdict import (fits, fmt_bytes, held_against, memory_fraction_note, planned_label, share,
+                                        verdict)
+
 __all__ = ["DOES_NOT_FIT", "add_plan_parser", "run_plan_command"]
 
 DOES_NOT_FIT = 3  # exit status of a plan that does not fit
 MARGIN = 0.95  # estimates aim at this share of the target's memory (they are about linear)
-JAX_GPU_FRACTION = 0.75  # JAX's GPU client lets XLA use this share unless told otherwise
 PROGRESS_EVERY = 60.0  # seconds between "still compiling" lines: XLA says nothing for minutes
 
 
@@ -139,16 +141,6 @@ def _config(args: argparse.Namespace):
         _fail(str(e))
 
 
-def fmt_bytes(n: int | None) -> str:
-    """Bytes in GiB (MiB, KiB for small programs)."""
-    if n is None:
-        return "n/a"
-    for unit, size in (("GiB", 2 ** 30), ("MiB", 2 ** 20)):
-        if abs(n) >= 0.1 * size:
-            return f"{n / size:.2f} {unit}"
-    return f"{n / 1024:.1f} KiB"
-
-
 def param_bytes(config, param_dtype: str) -> int:
     """Bytes of the weights the forward holds (no track head), as `memory_report` plans them."""
     from rvggt_jax.planning.memory import abstract_params
@@ -156,10 +148,6 @@ def param_bytes(config, param_dtype: str) -> int:
     import jax
 
     return sum(a.size * a.dtype.itemsize for a in jax.tree.leaves(abstract_params(config, param_dtype=param_dtype)))
-
-
-def _share(n: int, have: int) -> str:
-    return f" ({n / have:.0%})" if have else ""
 
 
 def _describe(rep, target, label: str) -> list[str]:
@@ -189,71 +177,11 @@ def _describe(rep, target, label: str) -> list[str]:
                      "(XLA:TPU counts more temporaries than it places at once)")
     else:
         lines.append(f"  total        {fmt_bytes(rep.total_bytes)} of {fmt_bytes(rep.memory_bytes)}"
-                     f"{_share(rep.total_bytes, rep.memory_bytes)}: {rep.memory_what}")
+                     f"{share(rep.total_bytes, rep.memory_bytes)}: {rep.memory_what}")
     if rep.peak_bytes:
         lines.append(f"  peak         {fmt_bytes(rep.peak_bytes)} (XLA's heap simulation of the scheduled program)")
     lines.append(f"  (XLA's plan, compiled in {rep.compile_seconds:.1f} s; nothing ran)")
     return lines
-
-
-def held_against(rep, gib: float | None):
-    """`rep` held against `gib` GiB (--memory-gb) instead of its target's memory (None: as
-    it is). A program XLA:TPU compiled was checked against the chip's HBM: `judge` reads
-    its heap-simulation peak when G is less."""
-    if gib is None:
-        return rep
-    what = f"--memory-gb {gib:g}, instead of {fmt_bytes(rep.memory_bytes)} ({rep.memory_what or rep.target})"
-    return dataclasses.replace(rep, memory_bytes=int(gib * 2 ** 30), memory_what=what,
-                               own_memory_bytes=rep.memory_bytes)
-
-
-def judge(rep) -> tuple[bool, str, str]:
-    """(fits, figure, what decides) of a report held against a known memory. One figure:
-    XLA:TPU's refusal or heap-simulation peak (it compiles only what fits its HBM), else
-    XLA's planned total against the memory; a plan that fits never shows a share over 100%.
-    Held against less than the chip's HBM (--memory-gb, `held_against`), a program XLA:TPU
-    compiled is judged by its heap-simulation peak (by its total, an upper bound, when
-    XLA:TPU gave none); against more, a refused one by the size XLA:TPU said it needs."""
-    have, mem = fmt_bytes(rep.memory_bytes), rep.memory_bytes
-    if rep.exhausted:
-        need = rep.needed_bytes
-        if need <= mem:  # (--memory-gb above the chip's HBM)
-            return (True, f"needs {fmt_bytes(need)} of {have}{_share(need, mem)}",
-                    "the size XLA:TPU said it needs when it refused the chip's HBM decides")
-        return (False, f"needs {fmt_bytes(need)} of {have}{_share(need, mem)}",
-                "XLA:TPU refused to compile it: its own HBM check decides")
-    if rep.compiler_checked:
-        peak = rep.peak_bytes
-        hbm = rep.own_memory_bytes or mem  # what XLA:TPU compiled it for
-        if mem < hbm:  # (--memory-gb below the HBM XLA:TPU compiled it for: its check says nothing of G)
-            figure, decides = ((peak, "XLA:TPU's heap-simulation peak decides") if peak else
-                               (rep.total_bytes, "XLA:TPU's total decides, an upper bound: it may fit"))
-            if figure <= mem:
-                return (True, f"{fmt_bytes(figure)} of {have}{_share(figure, mem)}, {fmt_bytes(mem - figure)} to "
-                              f"spare", decides)
-            return (False, f"needs {fmt_bytes(figure)} of {have}{_share(figure, mem)}, short by "
-                           f"{fmt_bytes(figure - mem)}", decides)
-        shown = f", heap-simulation peak {fmt_bytes(peak)}{_share(peak, mem)}" if peak and peak <= mem else ""
-        if hbm < mem:  # (--memory-gb above it)
-            return (True, f"compiled for the chip's {fmt_bytes(hbm)} of HBM, within the {have} held against{shown}",
-                    "XLA:TPU's own HBM check decides, not the total")
-        return True, f"compiled for the {have} of HBM{shown}", "XLA:TPU's own HBM check decides, not the total"
-    total, spare = rep.total_bytes, rep.headroom_bytes
-    figure = f"{fmt_bytes(total)} of {have}{_share(total, mem)}"
-    if spare >= 0:
-        return True, f"{figure}, {fmt_bytes(spare)} to spare", "XLA's planned total decides"
-    return False, f"needs {figure}, short by {fmt_bytes(-spare)}", "XLA's planned total decides"
-
-
-def fits(rep) -> bool | None:
-    """Whether the plan fits the memory it is held against (`judge`); None when unknown."""
-    return None if rep.memory_bytes is None else judge(rep)[0]
-
-
-def verdict(rep) -> str:
-    """The plan's one verdict line: FITS or DOES NOT FIT, one figure, what decides."""
-    fits, figure, decides = judge(rep)
-    return f"{'FITS' if fits else 'DOES NOT FIT'}: {figure} ({decides})."
 
 
 @dataclasses.dataclass
@@ -279,13 +207,8 @@ class Suggestion:
         return self.label.startswith("estimate")
 
 
-def planned_label(rep) -> str:
-    fits, figure, _ = judge(rep)
-    return f"planned, {'fits' if fits else 'does not fit'}: {figure}"
-
-
 def _estimate(size: float, have: int) -> str:
-    return f"estimate: about {fmt_bytes(int(size))} of {fmt_bytes(have)}{_share(size, have)}"
+    return f"estimate: about {fmt_bytes(int(size))} of {fmt_bytes(have)}{share(size, have)}"
 
 
 def setting_changes(args: argparse.Namespace) -> dict:
@@ -357,16 +280,6 @@ def alternatives(args, rep, target, config, plan=None) -> list[Suggestion]:
                 alt = _with(args, tip.changes)
                 tip.label = planned_label(plan(alt, _config(alt), target, f"the alternative {tip.options}"))
     return tips
-
-
-def memory_fraction_note(rep, target) -> str | None:
-    """For a GPU plan that fits but needs more than JAX's default share of the card: the
-    XLA_PYTHON_CLIENT_MEM_FRACTION to run with (None otherwise)."""
-    if target.platform != "cuda" or not fits(rep) or rep.total_bytes <= JAX_GPU_FRACTION * rep.memory_bytes:
-        return None
-    need = math.ceil(100 * rep.total_bytes / rep.memory_bytes) / 100
-    return (f"note: JAX lets XLA use {JAX_GPU_FRACTION:.0%} of a GPU's memory unless told otherwise: run with "
-            f"XLA_PYTHON_CLIENT_MEM_FRACTION={min(need + 0.02, 0.99):.2f} (or more)")
 
 
 def say(line: str) -> None:

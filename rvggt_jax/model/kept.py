@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvggt_jax.ops.bits import HalfBuffer, read_buffer, write_buffer
+from rvggt_jax.ops.bits import HalfBuffer, read_buffer, rounded, write_buffer
 from rvggt_jax.ops.ordering import materialize, ordered_after, zeros_after
 
 
@@ -101,9 +101,8 @@ class KeptLayer:
 
 
 class Part(NamedTuple):
-    """A reader's columns of a `ProjectedLayer`: [first, first + width) of F. `hw` None:
-    the level map on the token grid, projected only; (h, w): the map already
-    reassembled (resized and at the fusion width, `dpt.reassemble`) on an h x w grid."""
+    """A reader's columns [first, first + width) of a `ProjectedLayer`: its level map on the
+    token grid (`hw` None), or the level reassembled (`dpt.reassemble`) on an h x w grid."""
 
     first: int
     width: int
@@ -111,12 +110,10 @@ class Part(NamedTuple):
 
 
 class Projection(NamedTuple):
-    """What a layer's readers make of it first: `fn(tokens [N, P, 2C] float32) ->
-    [N, Q, F]` (Q: positions, F: every reader's columns side by side) and `columns`
-    ((reader, `Part`), ...): reader's part of F. `remat`: how a group of frames runs in
-    a training step (as the heads' groups: `dpt.map_frame_groups`), or None. `tokens`:
-    token indices some other reader takes from the layer (the camera token, 0), kept
-    as [B, S, 2C] when the layer itself is not."""
+    """What a layer's readers make of it first: `fn(tokens [N, P, 2C] float32) -> [N, Q, F]`
+    (Q: positions, F: every reader's columns side by side) and `columns` ((reader, `Part`),
+    ...). `remat`: how a group of frames runs in a training step (`dpt.map_frame_groups`),
+    or None. `tokens`: tokens another reader takes (the camera's, 0), kept [B, S, 2C] too."""
 
     fn: Callable[[jax.Array], jax.Array]
     columns: tuple[tuple[str, Part], ...]
@@ -137,13 +134,11 @@ class ProjectedLayer:
     """A kept layer as its readers' first step made it (`project_layer`): `buf`
     [B*S, Q, F] in the compute dtype (16-bit ones as `HalfBuffer`), `columns` as in
     `Projection`, `batch` = (B, S). `raw` is the layer itself when something else reads it
-    too (returned layers), else None; `tokens` {index: [B, S, 2C] float32}, the tokens
-    `Projection.tokens` asked for."""
+    too (returned layers), else None; `tokens` the {index: [B, S, 2C]} `Projection.tokens` asks."""
 
     def __init__(self, buf, columns: tuple, batch: tuple[int, int], raw: "KeptLayer | None" = None,
                  tokens: dict | None = None):
-        self.buf, self.columns, self.batch, self.raw = buf, columns, batch, raw
-        self.tokens = dict(tokens or {})
+        self.buf, self.columns, self.batch, self.raw, self.tokens = buf, columns, batch, raw, dict(tokens or {})
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -274,18 +269,6 @@ def _frames_of_slot(count: int):
         return jax.lax.dynamic_index_in_dim(frames, slot, 0, keepdims=False)
 
     return part
-
-
-def rounded(x: jax.Array, dtype) -> jax.Array:
-    """float32 x rounded to `dtype`'s precision, still float32. bfloat16 by its bits
-    (round to nearest even on the upper 16 bits): a cast would let XLA:TPU's bfloat16
-    propagation turn the stream it slices into bfloat16 whole, a 2 GB copy at 1000
-    frames (and another for its re-layout)."""
-    if jnp.dtype(dtype) != jnp.dtype(jnp.bfloat16):
-        return x.astype(dtype).astype(jnp.float32)
-    bits = jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.uint32)
-    bits = (bits + jnp.uint32(0x7FFF) + ((bits >> 16) & 1)) & jnp.uint32(0xFFFF0000)
-    return jnp.where(jnp.isnan(x), x, jax.lax.bitcast_convert_type(bits, jnp.float32))
 
 
 def kept_slots(depth: int, keep) -> tuple[np.ndarray, int]:
@@ -423,8 +406,7 @@ class KeptLayers:
             layer = KeptLayer(self.frame, self.global_, k)
         else:
             layer = KeptLayer(self.frame, x.reshape(1, b, s, p, c), k, 0, self.dtype)
-        # (before the projection's loop clears the layer's slots)
-        tokens = {t: layer.token(t) for t in projection.tokens}
+        tokens = {t: layer.token(t) for t in projection.tokens}  # (before the loop clears the slots)
         buf, layer = project_layer(layer, projection, self.dtype, clear=i not in self.keep)
         kept = self._with(frame=layer.frame_buf, global_=layer.global_buf if i <= self.writes_global else self.global_)
         # a buffer the loop only reads: the next scan starts after it (through one weight:

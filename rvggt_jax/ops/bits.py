@@ -12,6 +12,7 @@ is exact and converts only what is used. Why and what it saves: docs/memory_layo
                               kernel's K/V on a CPU)
     read_buffer(buf, op, ...) op on a plain array or a `HalfBuffer` buffer
     write_buffer(buf, op, x, index)  a dynamic update of either
+    rounded(x, dtype)         float32 x rounded to a 16-bit dtype's precision, still float32
 
 GPUs and TPUs slice, gather and move 16-bit floats natively, so the ops take the plain
 form there (`on_cpu`: the choice is made when the program is lowered for its platform,
@@ -159,3 +160,15 @@ def _load_bits(op, bits, shadow, *index):
 def _load_bits_jvp(op, primals, tangents):
     bits, shadow, *index = primals
     return _load_bits(op, bits, shadow, *index), op(tangents[1], *index)
+
+
+def rounded(x: jax.Array, dtype) -> jax.Array:
+    """float32 x rounded to `dtype`'s precision, still float32. bfloat16 by its bits
+    (round to nearest even on the upper 16 bits): a cast would let XLA:TPU's bfloat16
+    propagation turn the stream it slices into bfloat16 whole, a 2 GB copy at 1000
+    frames (and another for its re-layout)."""
+    if jnp.dtype(dtype) != jnp.dtype(jnp.bfloat16):
+        return x.astype(dtype).astype(jnp.float32)
+    bits = jax.lax.bitcast_convert_type(x.astype(jnp.float32), jnp.uint32)
+    bits = (bits + jnp.uint32(0x7FFF) + ((bits >> 16) & 1)) & jnp.uint32(0xFFFF0000)
+    return jnp.where(jnp.isnan(x), x, jax.lax.bitcast_convert_type(bits, jnp.float32))

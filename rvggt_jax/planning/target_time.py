@@ -6,7 +6,7 @@ frame-split form sends around the ring: the `time (estimate)` and `ring` lines o
 
 Time on an accelerator: the forward's FLOPs per device (`device_flops`: `estimate.forward_flops`,
 i.e. `cost.cost_report`'s aggregator under the compression preset, the DINO patch embed and the
-heads) at the target's peak dense FLOP/s for the way each part multiplies (`targets.Peaks`:
+heads) at the target's peak dense FLOP/s for the way each part multiplies (`peaks.Peaks`:
 the aggregator in the compute dtype, the heads in float32 at the config's precision), times
 `ASSUMED_EFFICIENCY`:
 
@@ -19,7 +19,7 @@ Neither is measured on the target: the memory traffic, the softmax, the norms, t
 gathers of token merging and the exchanges between devices are not in the FLOPs.
 
 The ring: `cost.ring_exchange`'s bytes per device and global layer at the target's link
-bandwidth one way (`targets.Link`), a floor as well (the transfers may overlap the compute,
+bandwidth one way (`peaks.Link`), a floor as well (the transfers may overlap the compute,
 which this does not count, or take one of several links).
 """
 

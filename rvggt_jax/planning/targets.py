@@ -21,7 +21,10 @@ import re
 from importlib import resources
 from typing import Any
 
-__all__ = ["CompilerMissingError", "Link", "Peaks", "TARGETS", "Target", "UnknownTargetError", "description_text",
+from rvggt_jax.planning import peaks
+from rvggt_jax.planning.peaks import Link, Peaks
+
+__all__ = ["CompilerMissingError", "TARGETS", "Target", "UnknownTargetError", "description_text",
            "exhausted_hbm", "gemm_fallback", "get_target", "host_memory_bytes", "target_device", "target_devices"]
 
 GiB = 2 ** 30
@@ -40,65 +43,6 @@ class UnknownTargetError(ValueError):
 
 class CompilerMissingError(RuntimeError):
     """XLA's compiler for a target's platform is not installed (or cannot describe it)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Peaks:
-    """Peak dense FLOP/s of one GPU or chip (no 2:4 sparsity), as the vendor publishes
-    them, for the ways this project runs a product (`VGGTConfig.dot_precision`,
-    `rvggt_jax/ops/precision.py`):
-
-    bf16     bfloat16 operands, float32 accumulation: a bfloat16 config's aggregator;
-    f32      float32 at "highest", what a float32 config runs: no TF32 on a GPU (its
-             CUDA cores' FP32 rate), six bfloat16 passes on a TPU;
-    f32_default  float32 at the platform's default, what a bfloat16 config's float32
-             heads run: TF32 tensor cores on a GPU, one bfloat16 pass on a TPU;
-    source   where the figures come from; f32_how, f32_default_how: how the platform
-             runs the two float32 ways (as the plan prints them).
-    """
-
-    bf16: float
-    f32: float
-    f32_default: float
-    source: str
-    f32_how: str = "FP32, no TF32"  # how the platform runs float32 at "highest"
-    f32_default_how: str = "TF32"  # and at its default
-    f32_high: float | None = None  # float32 at "high" (None: as at the default; a TPU: three bf16 passes)
-
-    def __post_init__(self):
-        if min(self.bf16, self.f32, self.f32_default) <= 0:
-            raise ValueError(f"peak FLOP/s must be positive; got {self}")
-
-    def of(self, dtype: str, precision: str | None = "highest") -> tuple[float, str]:
-        """(FLOP/s, what) of products with `dtype` operands ("bfloat16", "float32") at
-        `precision` (float32 only: "highest"; "high"; "default" or None, the platform's
-        fast path: TF32 or one bf16 pass)."""
-        if dtype == "bfloat16":
-            return self.bf16, "bf16"
-        if dtype != "float32":
-            raise ValueError(f"peak FLOP/s of {dtype!r} products: only bfloat16 and float32 are known")
-        if precision == "highest":
-            return self.f32, f"float32 at highest ({self.f32_how})"
-        if precision == "high" and self.f32_high is not None:
-            return self.f32_high, "float32 at high (three bf16 passes)"
-        return self.f32_default, f"float32 at {precision or 'default'} ({self.f32_default_how})"
-
-
-@dataclasses.dataclass(frozen=True)
-class Link:
-    """What one device of a target sends to its ring neighbour while it receives as
-    much: bytes_per_s one way (half the vendor's bidirectional figure), over `links`
-    links (a ring step to one neighbour may take only one of them: `links` times
-    longer), `name` (NVLink 4, ICI, PCIe 4.0 x16) and `source`."""
-
-    name: str
-    bytes_per_s: float
-    source: str
-    links: int = 1
-
-    def __post_init__(self):
-        if self.bytes_per_s <= 0 or self.links < 1:
-            raise ValueError(f"a link needs a positive bandwidth and at least one link; got {self}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,83 +143,34 @@ def _tpu(name, title, memory, tpu_type, aliases, chip_config="default", peak=Non
                   note="memory: the HBM XLA:TPU lets one program use (it refuses larger ones)", peak=peak, link=link)
 
 
-_T = 1e12  # TFLOP/s
-_GB = 1e9  # the vendors' GB/s are decimal
-
-# Peak dense FLOP/s (the vendors' tables give 2:4-sparse figures as well: twice these).
-# NVIDIA H100 SXM and H200 SXM datasheets: BF16 tensor 1,979 TFLOP/s with sparsity (989.4
-# dense), TF32 989 with sparsity (494.7 dense), FP32 67 (66.9 in the Hopper whitepaper's
-# table); the H200 is the same GH100 compute with more memory.
-_HOPPER = Peaks(989.4 * _T, 66.9 * _T, 494.7 * _T, "NVIDIA H100 / H200 SXM datasheets (dense)")
-# NVIDIA A100 datasheet: BF16 tensor 312, TF32 156, FP32 19.5 TFLOP/s (SXM, 40 and 80 GB)
-_A100 = Peaks(312 * _T, 19.5 * _T, 156 * _T, "NVIDIA A100 datasheet (dense)")
-# NVIDIA RTX A6000 datasheet: BF16 tensor 154.8 (309.7 sparse), TF32 77.4 (154.8 sparse),
-# FP32 38.7 TFLOP/s
-_A6000 = Peaks(154.8 * _T, 38.7 * _T, 77.4 * _T, "NVIDIA RTX A6000 datasheet (dense)")
-# NVIDIA Ada whitepaper, RTX 4090: BF16 tensor with FP32 accumulate (what XLA's bf16
-# products ask for; GeForce cards run it at half the FP16-accumulate rate) 165.2, TF32
-# 82.6, FP32 82.6 TFLOP/s
-_RTX4090 = Peaks(165.2 * _T, 82.6 * _T, 82.6 * _T, "NVIDIA Ada GPU architecture whitepaper, RTX 4090 (dense, "
-                                                 "FP32 accumulate)")
-# NVIDIA RTX Blackwell whitepaper, RTX 5090: FP16/BF16 tensor 838 TFLOP/s sparse with FP16
-# accumulate, so 209.5 dense with FP32 accumulate (half rate on GeForce, as the 4090),
-# TF32 104.8, FP32 104.8
-_RTX5090 = Peaks(209.5 * _T, 104.8 * _T, 104.8 * _T, "NVIDIA RTX Blackwell GPU architecture whitepaper, RTX 5090 "
-                                                   "(dense, FP32 accumulate)")
-
-
-def _tpu_peaks(bf16: float, source: str) -> Peaks:
-    # A TPU multiplies bfloat16 only: a float32 product at "highest" is six bf16 passes
-    # (XLA's algorithm ALG_DOT_BF16_BF16_F32_X6), at "high" three (_X3), at "default" one
-    return Peaks(bf16, bf16 / 6, bf16, source + "; float32 at highest: six bf16 passes (a sixth)",
-                 f32_how="six bf16 passes", f32_default_how="one bf16 pass", f32_high=bf16 / 3)
-
-
-# Google Cloud TPU docs (docs.cloud.google.com/tpu/docs/v5e, v6e, v5p-training), per chip:
-# peak bf16 197 / 918 / 459 TFLOP/s; bidirectional ICI bandwidth 400 / 800 / 1200 GB/s
-# over 4 / 4 / 6 ICI ports
-_V5E = _tpu_peaks(197 * _T, "Google Cloud TPU v5e docs: 197 TFLOP/s bf16 per chip")
-_V6E = _tpu_peaks(918 * _T, "Google Cloud TPU v6e docs: 918 TFLOP/s bf16 per chip")
-_V5P = _tpu_peaks(459 * _T, "Google Cloud TPU v5p docs: 459 TFLOP/s bf16 per chip (two cores, megacore)")
-_ICI_V5E = Link("ICI", 200 * _GB, "Google Cloud TPU v5e docs: 400 GB/s bidirectional ICI per chip, 4 ports", 4)
-_ICI_V6E = Link("ICI", 400 * _GB, "Google Cloud TPU v6e docs: 800 GB/s bidirectional ICI per chip, 4 ports", 4)
-_ICI_V5P = Link("ICI", 600 * _GB, "Google Cloud TPU v5p docs: 1200 GB/s bidirectional ICI per chip, 6 ports", 6)
-# NVIDIA datasheets: NVLink 900 GB/s (H100, H200 SXM) and 600 GB/s (A100 SXM) per GPU,
-# bidirectional, through NVSwitch to any GPU of the host; PCIe (no NVLink: the GeForce
-# cards; the A6000's NVLink bridge joins two cards only): 4.0 x16 ~64 GB/s, 5.0 x16 ~128
-# GB/s bidirectional
-_NVLINK4 = Link("NVLink 4", 450 * _GB, "NVIDIA H100 / H200 SXM datasheets: NVLink 900 GB/s bidirectional")
-_NVLINK3 = Link("NVLink 3", 300 * _GB, "NVIDIA A100 SXM datasheet: NVLink 600 GB/s bidirectional")
-_PCIE4 = Link("PCIe 4.0 x16", 32 * _GB, "PCIe 4.0 x16: 64 GB/s bidirectional")
-_PCIE5 = Link("PCIe 5.0 x16", 64 * _GB, "PCIe 5.0 x16: 128 GB/s bidirectional")
-
-
 # Memory of the XLA-described cards: the description's own device_memory_size. TPU: the
 # largest program XLA:TPU (libtpu 0.0.42) accepted for one chip, found by bisection to
 # 1 MiB (its refusals print 15.75G, 31.25G and 95.74G available).
 _AMPERE = "cuBLAS gemms (xla_gpu_enable_triton_gemm=false, see NO_TRITON_GEMM)"
 _ALL = (
-    _gpu("h100", "NVIDIA H100 SXM 80GB", 84942979072, "h100_sxm.txtpb", ("h100-sxm", "h100-80gb"), peak=_HOPPER,
-         link=_NVLINK4),
-    _gpu("h200", "NVIDIA H200 141GB", 151397597184, "h200.txtpb", ("h200-sxm",), peak=_HOPPER, link=_NVLINK4),
+    _gpu("h100", "NVIDIA H100 SXM 80GB", 84942979072, "h100_sxm.txtpb", ("h100-sxm", "h100-80gb"), peak=peaks.HOPPER,
+         link=peaks.NVLINK4),
+    _gpu("h200", "NVIDIA H200 141GB", 151397597184, "h200.txtpb", ("h200-sxm",), peak=peaks.HOPPER,
+         link=peaks.NVLINK4),
     _gpu("a100-40gb", "NVIDIA A100 SXM 40GB", 42331013120, "a100_sxm_40.txtpb", ("a100-40", "a100"),
-         note=_AMPERE, compiler_options=NO_TRITON_GEMM, peak=_A100, link=_NVLINK3),
+         note=_AMPERE, compiler_options=NO_TRITON_GEMM, peak=peaks.A100, link=peaks.NVLINK3),
     _gpu("a100-80gb", "NVIDIA A100 SXM 80GB", 85100068864, "a100_sxm_80.txtpb", ("a100-80",),
-         note=_AMPERE, compiler_options=NO_TRITON_GEMM, peak=_A100, link=_NVLINK3),
+         note=_AMPERE, compiler_options=NO_TRITON_GEMM, peak=peaks.A100, link=peaks.NVLINK3),
     _gpu("a6000", "NVIDIA RTX A6000 48GB", 51041271808, "a6000.txtpb", ("rtx-a6000",),
-         note=_AMPERE, compiler_options=NO_TRITON_GEMM, peak=_A6000, link=_PCIE4),
+         note=_AMPERE, compiler_options=NO_TRITON_GEMM, peak=peaks.A6000, link=peaks.PCIE4),
     _gpu("rtx4090", "NVIDIA GeForce RTX 4090 24GB", 24 * GiB, "a6000.txtpb", ("4090", "rtx-4090", "gpu-24gb"),
          note="XLA ships no Ada (sm_89) description: planned with the RTX A6000's (Ampere GA102, sm_86, cuDNN "
               f"flash attention too) and {_AMPERE}, held against the card's 24 GiB",
-         compiler_options=NO_TRITON_GEMM, peak=_RTX4090, link=_PCIE4),
+         compiler_options=NO_TRITON_GEMM, peak=peaks.RTX4090, link=peaks.PCIE4),
     _gpu("rtx5090", "NVIDIA GeForce RTX 5090 32GB", 32 * GiB, "rtx6000pro.txtpb", ("5090", "rtx-5090", "gpu-32gb"),
          note="XLA ships no GeForce Blackwell description: planned with the RTX PRO 6000 Blackwell's (the same "
-              "GB202 chip, sm_120), held against the card's 32 GiB", peak=_RTX5090, link=_PCIE5),
-    _tpu("tpu-v5e", "TPU v5e (one chip)", 16908386304, "v5e", ("v5e", "v5litepod", "tpu-v5-lite"), peak=_V5E,
-         link=_ICI_V5E),
-    _tpu("tpu-v6e", "TPU v6e (one chip)", 33549328384, "v6e", ("v6e", "trillium"), peak=_V6E, link=_ICI_V6E),
+              "GB202 chip, sm_120), held against the card's 32 GiB", peak=peaks.RTX5090, link=peaks.PCIE5),
+    _tpu("tpu-v5e", "TPU v5e (one chip)", 16908386304, "v5e", ("v5e", "v5litepod", "tpu-v5-lite"),
+         peak=peaks.TPU_V5E, link=peaks.ICI_V5E),
+    _tpu("tpu-v6e", "TPU v6e (one chip)", 33549328384, "v6e", ("v6e", "trillium"), peak=peaks.TPU_V6E,
+         link=peaks.ICI_V6E),
     _tpu("tpu-v5p", "TPU v5p (one chip, megacore)", 102802489344, "v5p", ("v5p",), chip_config="megacore",
-         peak=_V5P, link=_ICI_V5P),
+         peak=peaks.TPU_V5P, link=peaks.ICI_V5P),
     Target("cpu", "this machine's CPU", "cpu", None, aliases=("host",),
            note="memory: this machine's available RAM (RVGGT_MEMORY_LIMIT_GB overrides it)"),
 )

@@ -15,11 +15,10 @@ import numpy as np
 import pytest
 
 from tests.helpers import rel_err
+from tests.helpers.tolerances import UPSTREAM_BF16
 from rvggt_jax import rvggt_forward
 from rvggt_jax.weights.checkpoint import cast_params
 
-UPSTREAM_BF16 = {"aggregated": 1.1e-2, "pose_enc": 1.6e-2, "depth": 7.0e-3, "depth_conf": 7.9e-3,
-                 "world_points": 1.9e-2, "world_points_conf": 5.9e-3}
 LAYERS = (0, 4, 11, 17, 23)
 
 
@@ -93,10 +92,10 @@ def test_whole_tree_cast_to_bf16_runs_with_heads_in_float32(tiny, golden):
 
 
 def test_rounding_by_bits_equals_the_bfloat16_cast():
-    """`kept.rounded` (the final stream as its bfloat16 slot would hold it, by bits, no
+    """`ops.bits.rounded` (the final stream as its bfloat16 slot would hold it, by bits, no
     cast) equals a cast to bfloat16 and back, over magnitudes, ties, overflow, zeros,
     infinities and NaN."""
-    from rvggt_jax.model.kept import rounded
+    from rvggt_jax.ops.bits import rounded
 
     rng = np.random.default_rng(0)
     x = rng.standard_normal(20000).astype(np.float32) * (10.0 ** rng.integers(-40, 38, 20000)).astype(np.float32)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tests.helpers import rel_err
-from tests.model.test_bf16 import UPSTREAM_BF16
+from tests.helpers.tolerances import UPSTREAM_BF16
 from rvggt_jax import rvggt_forward
 from rvggt_jax.model.aggregator import aggregator_forward
 from rvggt_jax.model.forward import _head_projections

@@ -56,10 +56,10 @@ def head_projections(readers: Mapping[str, tuple[Params, Sequence[int], bool]], 
         if layer in raw or len({e[0] for e in entries}) < len(entries):
             continue
         steps = [_projected(params, level, grid) for _, params, level, _ in entries]
-        maps = [jax.eval_shape(f, tokens_in).shape for f in steps]
+        maps = [f.shape(tokens_in) for f in steps]
         if reassembled:
             whole = [_reassembled(params, level, grid, pos) for _, params, level, pos in entries]
-            whole_maps = [jax.eval_shape(f, tokens_in).shape for f in whole]
+            whole_maps = [f.shape(tokens_in) for f in whole]
             # (side by side needs one grid: the readers of a layer read it at one level)
             if len({m[1:3] for m in whole_maps}) == 1 and _values(whole_maps) < _values(maps):
                 steps, maps = whole, whole_maps
@@ -78,22 +78,32 @@ def head_projections(readers: Mapping[str, tuple[Params, Sequence[int], bool]], 
 
 
 class _Step:
-    """One reader's first step on a layer's tokens [N, P, 2C] -> a map [N, h, w, F]."""
+    """One reader's first step on a layer's tokens [N, P, 2C] -> a map [N, h, w, F]:
+    its level map (`projected_only`), or the whole reassembled level."""
 
-    def __init__(self, fn: Callable[[jax.Array], jax.Array], projected_only: bool):
-        self.fn, self.projected_only = fn, projected_only
+    def __init__(self, params: Params, level: int, grid: TokenGrid, pos_embed: bool, projected_only: bool):
+        self.params, self.level, self.grid = params, level, grid
+        self.pos_embed, self.projected_only = pos_embed, projected_only
+
+    def apply(self, params: Params, x: jax.Array) -> jax.Array:
+        g = self.grid
+        m = level_map(params, self.level, x, g.patch_start_idx, g.hw)
+        return m if self.projected_only else reassemble(params, self.level, m, g.image_hw, self.pos_embed)
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        return self.fn(x)
+        return self.apply(self.params, x)
+
+    def shape(self, x: jax.ShapeDtypeStruct) -> tuple[int, ...]:
+        """The map's shape for tokens `x` (the parameters as arguments: abstract ones too)."""
+        return jax.eval_shape(self.apply, self.params, x).shape
 
 
 def _projected(params: Params, level: int, grid: TokenGrid) -> _Step:
-    return _Step(lambda x: level_map(params, level, x, grid.patch_start_idx, grid.hw), True)
+    return _Step(params, level, grid, False, True)
 
 
 def _reassembled(params: Params, level: int, grid: TokenGrid, pos_embed: bool) -> _Step:
-    return _Step(lambda x: reassemble(params, level, level_map(params, level, x, grid.patch_start_idx, grid.hw),
-                                      grid.image_hw, pos_embed), False)
+    return _Step(params, level, grid, pos_embed, False)
 
 
 def _values(maps) -> int:
