@@ -31,8 +31,8 @@ import sys
 import threading
 import time
 
-from rvggt_jax.app.plan_verdict import (fits, fmt_bytes, held_against, memory_fraction_note, planned_label, share,
-                                        verdict)
+from rvggt_jax.app.plan_verdict import fits, held_against, memory_fraction_note, planned_label, share, verdict
+from rvggt_jax.planning.memory import fmt_bytes
 
 __all__ = ["DOES_NOT_FIT", "add_plan_parser", "run_plan_command"]
 

@@ -7,20 +7,12 @@ from __future__ import annotations
 import dataclasses
 import math
 
-__all__ = ["JAX_GPU_FRACTION", "fits", "fmt_bytes", "held_against", "judge", "memory_fraction_note", "planned_label",
-           "share", "verdict"]
+from rvggt_jax.planning.memory import fmt_bytes
+
+__all__ = ["JAX_GPU_FRACTION", "fits", "held_against", "judge", "memory_fraction_note", "planned_label", "share",
+           "verdict"]
 
 JAX_GPU_FRACTION = 0.75  # JAX's GPU client lets XLA use this share unless told otherwise
-
-
-def fmt_bytes(n: int | None) -> str:
-    """Bytes in GiB (MiB, KiB for small programs)."""
-    if n is None:
-        return "n/a"
-    for unit, size in (("GiB", 2 ** 30), ("MiB", 2 ** 20)):
-        if abs(n) >= 0.1 * size:
-            return f"{n / size:.2f} {unit}"
-    return f"{n / 1024:.1f} KiB"
 
 
 def share(n: int, have: int) -> str:

@@ -145,8 +145,6 @@ def cost_report(config: VGGTConfig, frames: int, height: int, width: int, batch:
     )
 
 
-# bytes of the compute dtypes (the config's dtype names: `VGGTConfig.dtype`)
-ITEMSIZE = {"float32": 4, "bfloat16": 2}
 FLOAT32 = INT32 = 4  # the residual stream, the group sums, the size bias; the match's indices
 
 
@@ -233,7 +231,7 @@ def ring_exchange(config: VGGTConfig, frames: int, height: int, width: int, devi
         raise ValueError(f"height and width must be multiples of {ps}")
     h, w = height // ps, width // ps
     comp, c = config.compression, config.embed_dim
-    item = ITEMSIZE[config.dtype]
+    item = config.compute_dtype.itemsize
     geom = Geometry(frames, h, w, config.patch_start_idx)
     per_frame = geom.per_frame
     local = math.ceil(frames / devices)

@@ -127,6 +127,16 @@ class MemoryReport:
         return head + body + f" for {self.target}{have}: {verdict}"
 
 
+def fmt_bytes(n: int | None) -> str:
+    """Bytes in GiB (MiB, KiB for small programs)."""
+    if n is None:
+        return "n/a"
+    for unit, size in (("GiB", 2 ** 30), ("MiB", 2 ** 20)):
+        if abs(n) >= 0.1 * size:
+            return f"{n / size:.2f} {unit}"
+    return f"{n / 1024:.1f} KiB"
+
+
 def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:
     """The converted parameter tree of `config` as `jax.ShapeDtypeStruct` leaves (the
     aggregator's in `param_dtype`, as `load_pretrained(..., param_dtype=...)` loads it; in

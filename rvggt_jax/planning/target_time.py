@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.planning.memory import fmt_bytes
 
 __all__ = ["ASSUMED_EFFICIENCY", "TimeEstimate", "device_flops", "ring_lines", "time_estimate", "time_line"]
 
@@ -181,13 +182,6 @@ def _layer_ranges(layers: list[int]) -> str:
     return ("layers " if len(layers) > 1 else "layer ") + ", ".join(runs)
 
 
-def _bytes(n: float) -> str:
-    for unit, size in (("GiB", 2 ** 30), ("MiB", 2 ** 20)):
-        if n >= 0.1 * size:
-            return f"{n / size:.2f} {unit}"
-    return f"{n / 1024:.1f} KiB"
-
-
 def ring_lines(exchange: list[dict], target, devices: int) -> list[str]:
     """The plan's ring lines for `cost.ring_exchange`'s layers over `devices` devices of
     `target`: per run of layers that send alike, the bytes each device sends (and
@@ -216,11 +210,11 @@ def ring_lines(exchange: list[dict], target, devices: int) -> list[str]:
         runs.setdefault(key, []).append(row["layer"])
     for (kind, parts), layers in runs.items():
         total = sum(v for _, v in parts)
-        detail = ", ".join(f"{name} {_bytes(v)}" for name, v in parts) or "nothing"
+        detail = ", ".join(f"{name} {fmt_bytes(v)}" for name, v in parts) or "nothing"
         each = " each" if len(layers) > 1 else ""
-        lines.append(f"               {_layer_ranges(layers)} ({kind}): {_bytes(total)}{at(total)}{each} "
+        lines.append(f"               {_layer_ranges(layers)} ({kind}): {fmt_bytes(total)}{at(total)}{each} "
                      f"({detail})" if total else f"               {_layer_ranges(layers)} ({kind}): nothing")
     total = sum(row["bytes"] for row in exchange)
-    lines.append(f"               sum over the {len(exchange)} global layers: {_bytes(total)}{at(total)} per "
+    lines.append(f"               sum over the {len(exchange)} global layers: {fmt_bytes(total)}{at(total)} per "
                  f"{unit} and forward (the camera head's gathers not counted)")
     return lines

@@ -94,7 +94,10 @@ class _Step:
         return self.apply(self.params, x)
 
     def shape(self, x: jax.ShapeDtypeStruct) -> tuple[int, ...]:
-        """The map's shape for tokens `x` (the parameters as arguments: abstract ones too)."""
+        """The map's shape for tokens `x`: a level map's from its projection's kernel, a
+        reassembled one traced (the parameters as arguments: abstract ones too)."""
+        if self.projected_only:
+            return (x.shape[0], *self.grid.hw, self.params["projects"][str(self.level)]["kernel"].shape[-1])
         return jax.eval_shape(self.apply, self.params, x).shape
 
 
