@@ -8,6 +8,7 @@ they are unusable (`sanitize_cameras`) and the points chosen by confidence
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -71,6 +72,7 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
     import jax
 
     from rvggt_jax.model.forward import rvggt_forward
+    from rvggt_jax.planning.memory import UNUSED_DONATION
 
     missing = [k for k, on in (("camera", config.enable_camera), ("depth", config.enable_depth)) if not on]
     if missing:
@@ -86,7 +88,11 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
         replicated, split = input_shardings(mesh, batch.shape[1])
         params, batch = jax.device_put(params, replicated), jax.device_put(batch, split)
         forward = functools.partial(sharded_forward, mesh=mesh)
-    out = (compiled if compiled is not None else jax.jit(forward))(params, batch, config)
+    # the batch is this call's own array: donated, XLA may reuse its buffer once the patch
+    # embed has read it (as `memory_report` plans the program)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=UNUSED_DONATION)
+        out = (compiled if compiled is not None else jax.jit(forward, donate_argnums=1))(params, batch, config)
     return {k: np.asarray(out[k])[0] for k in _OUTPUT_KEYS if k in out}
 
 

@@ -67,7 +67,8 @@ def add_plan_parser(sub) -> None:
     p.add_argument("--batch", type=int, default=1, metavar="B", help="sequences in one forward (default 1)")
     p.add_argument("--images", default="uint8", choices=("uint8", "float32"),
                    help="the images' dtype in the program: uint8 as `rvggt reconstruct` passes them (default), "
-                        "float32 for images in [0, 1] from Python (4x the bytes)")
+                        "float32 for images in [0, 1] from Python (4x the bytes). Either way the images are donated "
+                        "to the program, as jax.jit(rvggt_forward, donate_argnums=1) does")
     p.add_argument("--devices", type=int, default=1, metavar="N",
                    help="split the frames over N devices of the target (the figures are per device; default 1)")
     p.add_argument("--attention", default="auto", metavar="KERNEL",
@@ -170,7 +171,8 @@ def _describe(rep, target, label: str) -> list[str]:
                   f"  outputs      {fmt_bytes(rep.output_bytes)}",
                   f"  temporaries  {fmt_bytes(rep.temp_bytes)}"]
         if rep.alias_bytes:
-            lines.append(f"  aliased      -{fmt_bytes(rep.alias_bytes)}")
+            lines.append(f"  aliased      -{fmt_bytes(rep.alias_bytes)}"
+                         + (" (outputs written into the donated images' buffer)" if rep.images_donated else ""))
     if rep.compiler_checked:
         # no share of the HBM here: this sum is not what the chip holds, and not the verdict
         lines.append(f"  total        {fmt_bytes(rep.total_bytes)}: the sum above, an upper bound, not the verdict "

@@ -3,7 +3,10 @@
     out = jax.jit(rvggt_forward)(params, images, config)
 
 `config` is a static pytree node, so plain `jax.jit` compiles once per
-(input shape, config); `static_argnames="config"` works too.
+(input shape, config); `static_argnames="config"` works too. For long sequences, donate
+the images (`jax.jit(rvggt_forward, donate_argnums=1)`, as `rvggt` runs it): XLA may then
+reuse their buffer once they are read, instead of holding them to the end (float32
+images of 1000 frames need it to fit a TPU v6e; `rvggt_jax.memory_report`).
 """
 
 from __future__ import annotations

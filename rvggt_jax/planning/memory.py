@@ -10,12 +10,20 @@ default backend (or `backend`), or for a named accelerator that need not be here
 nothing runs and no weights are needed, so 1000 frames of VGGT-1B can be planned on a
 laptop. Peak = arguments + outputs + temporaries - aliased, the figure XLA allocates for
 the program (the device also holds its runtime and, for a CPU, the Python process).
+
+The images are donated to the program (`jax.jit(rvggt_forward, donate_argnums=1)`), as
+`rvggt reconstruct` runs it: once the patch embed has read them, XLA may reuse their
+buffer. With float32 images it writes the float32 point map there (`alias_bytes`). Kept,
+they are held to the program's end: XLA:TPU refuses `regime` at 1000 frames of 392 x 518
+with float32 images on a v6e (2.3 GiB over its HBM), and fits it donated
+(docs/accelerators.md). `donate_images=False` plans the program a plain `jax.jit` makes.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from typing import Any, Callable
 
 import jax
@@ -77,6 +85,7 @@ class MemoryReport:
     # (`rvggt plan --memory-gb`); None: memory_bytes is the target's
     own_memory_bytes: int | None = None
     low_memory: bool = False  # planned in the low-memory mode (`VGGTConfig.low_memory`)
+    images_donated: bool = True  # the program may reuse the images' buffer (donate_argnums=1)
 
     @property
     def exhausted(self) -> bool:
@@ -157,7 +166,7 @@ def attention_kernel(program_text: str) -> str:
 def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, batch: int = 1,
                   dtype: Any = None, param_dtype: Any = None, query_points: int = 0,
                   backend: str | None = None, mesh: Any = None, target: Any = None,
-                  devices: int = 1, image_dtype: Any = "float32",
+                  devices: int = 1, image_dtype: Any = "float32", donate_images: bool = True,
                   progress: Callable[[str], None] | None = None) -> MemoryReport:
     """XLA's memory analysis of `jax.jit(rvggt_forward)` for `batch` x `frames` images of
     `height` x `width` (multiples of the patch size) under `config`, without running it.
@@ -166,6 +175,8 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     weight dtype (default: the compute dtype). query_points > 0 includes the track head.
     image_dtype: "float32" (images in [0, 1]) or "uint8" (the form `rvggt reconstruct`
     passes, `io.images.network_images`: a quarter of the argument bytes).
+    donate_images: plan `jax.jit(rvggt_forward, donate_argnums=1)`, as the tool runs it
+    (the module's docstring); False: a plain `jax.jit`, the images held to the end.
     mesh: plan `sharded_forward` over this mesh's "frames" axis instead (the figures are
     then per device: replicated parameters, this device's frames and exchanges).
     target: a name of `rvggt_jax.planning.targets.TARGETS` ("h200", "tpu-v6e", "cpu", ...)
@@ -197,27 +208,41 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     images = jax.ShapeDtypeStruct((batch, frames, 3, height, width), image_dtype)
     queries = jax.ShapeDtypeStruct((batch, query_points, 2), jnp.float32) if with_track else None
     fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, image_dtype=image_dtype.name,
-                  param_dtype=param_dtype, preset=config.compression.name, low_memory=config.low_memory)
+                  param_dtype=param_dtype, preset=config.compression.name, low_memory=config.low_memory,
+                  images_donated=donate_images)
     if target is not None:
         return _target_report(config, params, images, queries, get_target(target), devices, fields, progress)
     t0 = time.perf_counter()
-    compiled = _lower(params, images, config, queries, mesh, backend).compile()
+    compiled = _lower(params, images, config, queries, mesh, backend, donate=donate_images).compile()
     return _report(compiled, time.perf_counter() - t0, fields)
 
 
-def _lower(params, images, config, queries, mesh, backend=None, device=None):
+def _lower(params, images, config, queries, mesh, backend=None, device=None, donate=True):
     """The forward lowered for the abstract inputs: on `device` (inputs placed there), as
-    `sharded_forward` over `mesh`, or on `backend` / the default backend."""
+    `sharded_forward` over `mesh`, or on `backend` / the default backend; `donate`: the
+    images donated (`donate_argnums=1`)."""
+    donated = (1,) if donate else ()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=UNUSED_DONATION)
+        return _lower_on(params, images, config, queries, mesh, backend, device, donated)
+
+
+# JAX's warning when no output can take a donated buffer: XLA may still reuse it for
+# temporaries, and a program without a float32 point map has no output of the images' size
+UNUSED_DONATION = "Some donated buffers were not usable"
+
+
+def _lower_on(params, images, config, queries, mesh, backend, device, donated):
     from rvggt_jax.model.forward import rvggt_forward
 
     if mesh is not None:
-        return _sharded_lowering(params, images, config, queries, mesh)
+        return _sharded_lowering(params, images, config, queries, mesh, donated)
     extra = () if queries is None else (queries,)
     if device is not None:
         where = jax.sharding.SingleDeviceSharding(device)
         params, images, extra = jax.tree.map(
             lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=where), (params, images, extra))
-    jitted = jax.jit(rvggt_forward, backend=backend) if backend else jax.jit(rvggt_forward)
+    jitted = jax.jit(rvggt_forward, donate_argnums=donated, **({"backend": backend} if backend else {}))
     return jitted.lower(params, images, config, *extra)
 
 
@@ -253,7 +278,7 @@ def _target_report(config, params, images, queries, target, devices: int, fields
                                                        axis_types=(jax.sharding.AxisType.Auto,))
     have, what = target.memory()
     t0 = time.perf_counter()
-    lowered = _lower(params, images, config, queries, mesh, device=devs[0])
+    lowered = _lower(params, images, config, queries, mesh, device=devs[0], donate=fields["images_donated"])
     more = dict(target=target.name, memory_bytes=have, memory_what=what, device_kind=devs[0].device_kind,
                 devices=devices, attention=attention_kernel(lowered.as_text()))
     try:
@@ -291,7 +316,7 @@ def _compile_for(lowered, target, progress=None) -> tuple[Any, str | None]:
     return lowered.compile(compiler_options=options), fallback
 
 
-def _sharded_lowering(params, images, config, queries, mesh):
+def _sharded_lowering(params, images, config, queries, mesh, donated=(1,)):
     """`sharded_forward` over `mesh` lowered for abstract inputs placed as
     `rvggt_jax.parallel.sharded.input_shardings` places them; compiled, the program takes
     (params, images, config[, query_points])."""
@@ -303,7 +328,8 @@ def _sharded_lowering(params, images, config, queries, mesh):
     params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), params)
     images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=split)
     extra = () if queries is None else (jax.ShapeDtypeStruct(queries.shape, queries.dtype, sharding=replicated),)
-    return jax.jit(functools.partial(sharded_forward, mesh=mesh)).lower(params, images, config, *extra)
+    return jax.jit(functools.partial(sharded_forward, mesh=mesh), donate_argnums=donated).lower(
+        params, images, config, *extra)
 
 
 # ---------------------------------------------------------------------------------------

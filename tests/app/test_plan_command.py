@@ -174,6 +174,11 @@ def test_the_printed_plan_names_its_parts_and_the_target():
     compiled = "\n".join(pc._describe(dataclasses.replace(rep, peak_bytes=12 * mib, compiler_checked=True),
                                       tg.TARGETS["tpu-v6e"], "VGGT-1B"))
     assert "peak         12.00 MiB (XLA's heap simulation" in compiled and "an upper bound" in compiled
+    # float32 images, donated: the point map written into their buffer (docs/accelerators.md)
+    donated = "\n".join(pc._describe(dataclasses.replace(rep, image_dtype="float32", alias_bytes=2 * mib),
+                                     tg.TARGETS["tpu-v6e"], "VGGT-1B"))
+    assert "aliased      -2.00 MiB (outputs written into the donated images' buffer)" in donated
+    assert "total        13.00 MiB" in donated
     refused = "\n".join(pc._describe(_report(memory_what="TPU v6e"), tg.TARGETS["tpu-v6e"], "VGGT-1B"))
     assert "n/a (XLA refused the program" in refused and "total        80.00 GiB of 32.00 GiB" in refused
 
