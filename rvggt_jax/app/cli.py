@@ -227,6 +227,10 @@ def _add_reconstruct_parser(sub, presets: str) -> None:
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="split the frames over N local devices, one forward pass (default: all of them when "
                         "there are several)")
+    p.add_argument("--low-memory", action="store_true",
+                   help="the low-memory inference mode (VGGTConfig.with_low_memory: depth and points in float16, "
+                        "confidences in bfloat16, the camera head's weights in --dtype, coarse layers kept "
+                        "reassembled); as `rvggt plan --low-memory` plans it")
     _add_chunk_options(p)
     _add_ba_options(p)
 
@@ -351,7 +355,7 @@ def reconstruct_options(args: argparse.Namespace) -> ReconstructOptions:
         skip_bad=args.skip_bad, exif_orientation=not args.ignore_exif, masks=args.masks, devices=args.devices,
         conf_threshold=args.conf_threshold, points_from=args.points, max_points=args.max_points,
         all_colmap_points=args.all_colmap_points, camera_type=args.camera_type, shared_camera=args.shared_camera,
-        save_raw=args.save_raw, ba=_ba_options(args), chunk_frames=args.chunk_frames,
+        save_raw=args.save_raw, ba=_ba_options(args), chunk_frames=args.chunk_frames, low_memory=args.low_memory,
         overlap=args.overlap, loop_closure=args.loop_closure)
 
 

@@ -158,7 +158,8 @@ def devices_mesh(devices: int | None):
 
 
 def model_for(local_weights, weights, options: ReconstructOptions):
-    """`(params, config)` of the checkpoint with the options' preset and dtype applied."""
+    """`(params, config)` of the checkpoint with the options' preset, dtype and low-memory
+    mode applied."""
     params, config = load_model(local_weights, options.quiet, name=weights, with_track=options.ba is not None)
     if options.preset is not None:
         import dataclasses
@@ -171,10 +172,11 @@ def model_for(local_weights, weights, options: ReconstructOptions):
             raise CLIError(one_line(e)) from None
     if options.points_from == "pointmap" and not config.enable_point:
         raise CLIError(f"checkpoint {weights} has no point head; use --points depth")
-    if options.dtype != config.dtype:
+    if options.dtype != config.dtype or options.low_memory:
         from rvggt_jax.weights.checkpoint import cast_params
 
-        config, params = config.with_dtype(options.dtype), cast_params(params, options.dtype)
+        config = config.with_dtype(options.dtype).with_low_memory(options.low_memory or config.low_memory)
+        params = cast_params(params, options.dtype, heads=config.half_weight_heads)
     return params, config
 
 

@@ -84,6 +84,9 @@ class ReconstructOptions:
       preset: compression preset of the global attention (`known_presets()`) or a preset
         file path.json (`rvggt_jax.diagnostics.load_preset`); None: the checkpoint's.
       dtype: the aggregator's compute dtype, "float32" or "bfloat16" (the heads stay float32).
+      low_memory: the low-memory inference mode (`VGGTConfig.with_low_memory`: 16-bit
+        outputs, the camera head's weights in the compute dtype, coarse layers kept
+        reassembled), for long sequences on small cards.
       devices: split the frames over this many local devices; None: all of them when
         there are several.
     Outputs:
@@ -129,6 +132,7 @@ class ReconstructOptions:
     masks: str | Path | None = None
     preset: str | None = None
     dtype: str = "float32"
+    low_memory: bool = False
     devices: int | None = None
     conf_threshold: str | float = DEFAULT_CONF_THRESHOLD
     points_from: str = "depth"

@@ -93,7 +93,8 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=UNUSED_DONATION)
         out = (compiled if compiled is not None else jax.jit(forward, donate_argnums=1))(params, batch, config)
-    return {k: np.asarray(out[k])[0] for k in _OUTPUT_KEYS if k in out}
+    # (float32 for what follows: the low-memory mode returns 16-bit depth and points)
+    return {k: np.asarray(out[k])[0].astype(np.float32, copy=False) for k in _OUTPUT_KEYS if k in out}
 
 
 def reconstruct(images, params, config, *, names: Sequence[str] | None = None, infos: Sequence[Any] | None = None,
