@@ -8,7 +8,6 @@ they are unusable (`sanitize_cameras`) and the points chosen by confidence
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -72,7 +71,7 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
     import jax
 
     from rvggt_jax.model.forward import rvggt_forward
-    from rvggt_jax.planning.memory import UNUSED_DONATION
+    from rvggt_jax.planning.memory import unused_donation_allowed
 
     missing = [k for k, on in (("camera", config.enable_camera), ("depth", config.enable_depth)) if not on]
     if missing:
@@ -90,8 +89,7 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
         forward = functools.partial(sharded_forward, mesh=mesh)
     # the batch is this call's own array: donated, XLA may reuse its buffer once the patch
     # embed has read it (as `memory_report` plans the program)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=UNUSED_DONATION)
+    with unused_donation_allowed():
         out = (compiled if compiled is not None else jax.jit(forward, donate_argnums=1))(params, batch, config)
     # (float32 for what follows: the low-memory mode returns 16-bit depth and points)
     return {k: np.asarray(out[k])[0].astype(np.float32, copy=False) for k in _OUTPUT_KEYS if k in out}

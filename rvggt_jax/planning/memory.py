@@ -21,6 +21,7 @@ with float32 images on a v6e (2.3 GiB over its HBM), and fits it donated
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 import warnings
@@ -217,24 +218,23 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     return _report(compiled, time.perf_counter() - t0, fields)
 
 
+@contextlib.contextmanager
+def unused_donation_allowed():
+    """Silences JAX's warning that no output can take the donated images' buffer: a
+    program without a float32 point map has no output of their size, and the donation
+    then costs nothing (the plans are the same: uint8 images on a v6e, docs/accelerators.md)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Some donated buffers were not usable")
+        yield
+
+
 def _lower(params, images, config, queries, mesh, backend=None, device=None, donate=True):
     """The forward lowered for the abstract inputs: on `device` (inputs placed there), as
     `sharded_forward` over `mesh`, or on `backend` / the default backend; `donate`: the
     images donated (`donate_argnums=1`)."""
-    donated = (1,) if donate else ()
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=UNUSED_DONATION)
-        return _lower_on(params, images, config, queries, mesh, backend, device, donated)
-
-
-# JAX's warning when no output can take a donated buffer: XLA may still reuse it for
-# temporaries, and a program without a float32 point map has no output of the images' size
-UNUSED_DONATION = "Some donated buffers were not usable"
-
-
-def _lower_on(params, images, config, queries, mesh, backend, device, donated):
     from rvggt_jax.model.forward import rvggt_forward
 
+    donated = (1,) if donate else ()
     if mesh is not None:
         return _sharded_lowering(params, images, config, queries, mesh, donated)
     extra = () if queries is None else (queries,)
@@ -243,7 +243,8 @@ def _lower_on(params, images, config, queries, mesh, backend, device, donated):
         params, images, extra = jax.tree.map(
             lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=where), (params, images, extra))
     jitted = jax.jit(rvggt_forward, donate_argnums=donated, **({"backend": backend} if backend else {}))
-    return jitted.lower(params, images, config, *extra)
+    with unused_donation_allowed():
+        return jitted.lower(params, images, config, *extra)
 
 
 def _report(compiled, seconds: float, fields: dict, **more) -> MemoryReport:
@@ -328,8 +329,9 @@ def _sharded_lowering(params, images, config, queries, mesh, donated=(1,)):
     params = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), params)
     images = jax.ShapeDtypeStruct(images.shape, images.dtype, sharding=split)
     extra = () if queries is None else (jax.ShapeDtypeStruct(queries.shape, queries.dtype, sharding=replicated),)
-    return jax.jit(functools.partial(sharded_forward, mesh=mesh), donate_argnums=donated).lower(
-        params, images, config, *extra)
+    with unused_donation_allowed():
+        return jax.jit(functools.partial(sharded_forward, mesh=mesh), donate_argnums=donated).lower(
+            params, images, config, *extra)
 
 
 # ---------------------------------------------------------------------------------------
