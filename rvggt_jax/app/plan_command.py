@@ -32,7 +32,7 @@ import threading
 import time
 
 from rvggt_jax.app.plan_verdict import fits, held_against, memory_fraction_note, planned_label, share, verdict
-from rvggt_jax.planning.memory import fmt_bytes
+from rvggt_jax.planning.units import fmt_bytes
 
 __all__ = ["DOES_NOT_FIT", "add_plan_parser", "run_plan_command"]
 

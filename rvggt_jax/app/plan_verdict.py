@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from rvggt_jax.planning.memory import fmt_bytes
+from rvggt_jax.planning.units import fmt_bytes
 
 __all__ = ["JAX_GPU_FRACTION", "fits", "held_against", "judge", "memory_fraction_note", "planned_label", "share",
            "verdict"]

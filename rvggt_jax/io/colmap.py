@@ -20,7 +20,6 @@ from typing import Sequence
 
 import numpy as np
 
-from rvggt_jax.geometry import mat_to_quat, nearest_rotation, quat_to_mat
 from rvggt_jax.io.cameras import check_cameras
 from rvggt_jax.io.ply import colors_u8
 
@@ -75,9 +74,17 @@ def colmap_cameras(intrinsics: np.ndarray, sizes: Sequence[tuple[int, int]], mod
     return ColmapCameras(model, sizes[:1], np.median(params, axis=0, keepdims=True), np.ones(len(k), int))
 
 
+def _geometry():
+    # (imported when first used: rvggt_jax.geometry imports JAX, and the command line reads
+    # CAMERA_MODELS to build its parser, before any model runs)
+    from rvggt_jax import geometry
+
+    return geometry
+
+
 def colmap_qvec(rotation: np.ndarray) -> np.ndarray:
     """COLMAP's unit quaternion (qw, qx, qy, qz), qw >= 0, of a rotation [3, 3] (float64)."""
-    x, y, z, w = mat_to_quat(np.asarray(rotation, dtype=np.float64))
+    x, y, z, w = _geometry().mat_to_quat(np.asarray(rotation, dtype=np.float64))
     q = np.array([w, x, y, z])
     return q / np.linalg.norm(q)
 
@@ -85,7 +92,7 @@ def colmap_qvec(rotation: np.ndarray) -> np.ndarray:
 def colmap_rotation(qvec) -> np.ndarray:
     """Rotation [3, 3] (float64) of a COLMAP quaternion (qw, qx, qy, qz), any norm."""
     w, x, y, z = np.asarray(qvec, dtype=np.float64)
-    return quat_to_mat(np.array([x, y, z, w]))
+    return _geometry().quat_to_mat(np.array([x, y, z, w]))
 
 
 def _fmt(x: float) -> str:
@@ -118,7 +125,7 @@ def _write_cameras_txt(folder: Path, cams: ColmapCameras) -> None:
 
 def _image_line(i: int, e: np.ndarray, cams: ColmapCameras, name: str) -> str:
     """images.txt's first line of image i (id i + 1): pose e [3, 4], camera, name."""
-    q = colmap_qvec(nearest_rotation(e[:, :3]))
+    q = colmap_qvec(_geometry().nearest_rotation(e[:, :3]))
     return " ".join([str(i + 1), *map(_fmt, q), *map(_fmt, e[:, 3]), str(int(cams.camera_ids[i])), name])
 
 
@@ -226,7 +233,7 @@ def write_colmap_binary(folder: PathLike, names: Sequence[str], extrinsics: np.n
     with open(folder / "images.bin", "wb") as f:
         f.write(struct.pack("<Q", s))
         for i in range(s):
-            q = colmap_qvec(nearest_rotation(e[i, :, :3]))
+            q = colmap_qvec(_geometry().nearest_rotation(e[i, :, :3]))
             f.write(struct.pack("<I7dI", i + 1, *q, *e[i, :, 3], int(cams.camera_ids[i])))
             f.write(names[i].encode("utf-8") + b"\0" + struct.pack("<Q", 0))
     pts = np.zeros((0, 3)) if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)

@@ -11,7 +11,6 @@ from typing import Sequence
 import numpy as np
 from PIL import Image, ImageDraw
 
-from rvggt_jax.geometry import camera_centers
 from rvggt_jax.io.ply import colors_u8
 
 __all__ = ["colorize", "write_thumbnails", "write_trajectory_png"]
@@ -65,6 +64,8 @@ def write_trajectory_png(path: PathLike, extrinsics: np.ndarray, points: np.ndar
     cloud points [N, 3] / colors [N, 3]. `names` is accepted for symmetry with the
     other writers; labels are indices (the order of cameras.json)."""
     e = np.asarray(extrinsics, dtype=np.float64)
+    from rvggt_jax.geometry import camera_centers  # (JAX: imported when a plot is drawn)
+
     centers = camera_centers(e)
     ax_a, ax_b = _top_view_basis(e)
     c2 = np.stack([centers @ ax_a, centers @ ax_b], axis=1)

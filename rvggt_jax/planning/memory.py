@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from rvggt_jax.config import VGGTConfig
+from rvggt_jax.planning.units import fmt_bytes  # (re-exported: the figures' one format)
 from rvggt_jax.planning.targets import MEMORY_LIMIT_ENV, GiB, get_target, host_memory_bytes
 
 # what the attention kernels leave in a lowered program (docs/accelerators.md)
@@ -135,16 +136,6 @@ class MemoryReport:
         verdict = {True: "fits", False: "does not fit", None: "memory unknown"}[self.fits]
         have = "" if self.memory_bytes is None else f" of {self.memory_bytes / GiB:.1f} GiB"
         return head + body + f" for {self.target}{have}: {verdict}"
-
-
-def fmt_bytes(n: int | None) -> str:
-    """Bytes in GiB (MiB, KiB for small programs)."""
-    if n is None:
-        return "n/a"
-    for unit, size in (("GiB", 2 ** 30), ("MiB", 2 ** 20)):
-        if abs(n) >= 0.1 * size:
-            return f"{n / size:.2f} {unit}"
-    return f"{n / 1024:.1f} KiB"
 
 
 def abstract_params(config: VGGTConfig, *, with_track: bool = False, param_dtype: Any = "float32") -> dict:

@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.planning.memory import fmt_bytes
+from rvggt_jax.planning.units import fmt_bytes
 
 __all__ = ["ASSUMED_EFFICIENCY", "TimeEstimate", "device_flops", "ring_lines", "time_estimate", "time_line"]
 
