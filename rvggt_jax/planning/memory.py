@@ -31,7 +31,6 @@ import jax
 import jax.numpy as jnp
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.planning.units import fmt_bytes  # (re-exported: the figures' one format)
 from rvggt_jax.planning.targets import MEMORY_LIMIT_ENV, GiB, get_target, host_memory_bytes
 
 # what the attention kernels leave in a lowered program (docs/accelerators.md)
