@@ -1,6 +1,6 @@
 """RegimeVGGT's global block: one global block under the configured compression.
 
-    state = state.init_state(config.compression, saliency, geometry, shards)   # once per forward
+    state = state.init_state(config.compression, saliency, geometry)   # once per forward
     x, state = global_block(p_block, x, pos, layer, config, state)
 
 `layer` is a Python int: every layer has its own static plan (`plan.layer_plan`) and the
@@ -40,18 +40,18 @@ def global_block(p_block: Params, x: jax.Array, pos, layer: int, config, state: 
     `config.compute_dtype`. Returns (x [B, N, C], state), the state with this layer's
     match (and K/V slots) cached when its plan stores them.
     """
-    geom, shards = state.geometry, state.shards
+    geom, layout = state.geometry, state.layout
     plan = layer_plan(config.compression, layer, geom)
     L = geom.per_frame
     b, n, c = x.shape
-    if n != shards.local * L:
-        raise ValueError(f"global block {layer}: {n} tokens but the state describes {shards.local * L}")
+    if n != layout.local * L:
+        raise ValueError(f"global block {layer}: {n} tokens but the state describes {layout.local * L}")
 
     if plan.kind == LayerKind.DENSE:
-        return layers.dense_global_block(p_block, x, pos, config, shards, L), state
+        return layers.dense_global_block(p_block, x, pos, config, L), state
     if plan.kind == LayerKind.FRAME:
         frame_pos = pos.first(L) if isinstance(pos, layers.RopeTables) else pos[:, :L]
-        out = layers.sequence_block(p_block, x.reshape(b * shards.local, L, c), frame_pos,
+        out = layers.sequence_block(p_block, x.reshape(b * layout.local, L, c), frame_pos,
                                     layers.BlockConfig.of(config))
         return out.reshape(b, n, c), state
     if not isinstance(pos, layers.RopeTables):

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.ops import chunks
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import FrameShards, frame_layout
 from rvggt_jax.ops.ordering import materialize
 
 
@@ -30,8 +30,7 @@ SIMILARITY_BLOCK_BYTES = 8 * 2**20
 
 
 def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chunk: int = 0,
-               dtype=None, transform=None, shards: FrameShards | None = None, per_frame: int = 0
-               ) -> tuple[jax.Array, jax.Array]:
+               dtype=None, transform=None, per_frame: int = 0) -> tuple[jax.Array, jax.Array]:
     """Cosine matching of src to dst tokens, in blocks.
 
     metric [B, N, C] (features, not yet normalised); src_idx [G, Na] and dst_idx [G, Nb]
@@ -44,10 +43,12 @@ def best_match(metric: jax.Array, src_idx: np.ndarray, dst_idx: np.ndarray, chun
     `transform` (per token, e.g. the block's norm1) is applied to gathered rows first.
 
     Three algorithms: the whole sequence on one device (`_match_sequence`) or over
-    devices (`_match_over_devices`: metric holds this device's tokens, `per_frame` per
-    frame; every device's dst rows travel around the ring), and within groups
-    (`_match_within_groups`: each group, a frame, on the device that holds it)."""
+    devices (`_match_over_devices`, with the frames split over devices: metric holds this
+    device's tokens, `per_frame` per frame; every device's dst rows travel around the
+    ring), and within groups (`_match_within_groups`: each group, a frame, on the device
+    that holds it)."""
     unit = _UnitRows(metric, metric.dtype if dtype is None else dtype, transform)
+    shards = frame_layout(metric.shape[1] // per_frame) if per_frame else None
     sharded = shards is not None and shards.sharded
     if src_idx.shape[0] > 1:
         return _match_within_groups(unit, src_idx, dst_idx, shards if sharded else None, per_frame)

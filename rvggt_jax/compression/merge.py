@@ -18,7 +18,6 @@ import jax.numpy as jnp
 
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.ordering import materialize, zeros_after
-from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.compression.matching import best_match
 from rvggt_jax.compression.plan import LayerPlan
 
@@ -113,18 +112,17 @@ def select_best(score: jax.Array, r: int) -> tuple[jax.Array, jax.Array, jax.Arr
 
 
 def compute_match(metric: jax.Array, protected_src: jax.Array | None, plan: LayerPlan, chunk: int, dtype=None,
-                  transform=None, shards: FrameShards | None = None, protected_pos: jax.Array | None = None
-                  ) -> Match:
+                  transform=None, protected_pos: jax.Array | None = None) -> Match:
     """metric [B, N, C] (similarity features), protected_src [B, N_src] bool or None ->
     the `Match` of this layer's plan (its partition: `plan.partition`). With
     `plan.protected_rows`, row N_dst + j is the own row of protected token j of
     protected_pos [B, U] (a protected dst's has no member: the block writes its own q, k,
     v there, `merged_layer.own_qkv`). The unit rows are
     normalised in float32 and stored in `dtype` (default: the metric's) block by block;
-    the cosine similarities accumulate in float32 (`best_match`). Split over devices
-    (`shards`): metric holds this device's tokens; the match is sequence-wide, the same
-    on every device."""
-    found = dict(chunk=chunk, dtype=dtype, transform=transform, shards=shards, per_frame=plan.per_frame)
+    the cosine similarities accumulate in float32 (`best_match`). With the frames split
+    over devices (`ops.shards.frame_layout`): metric holds this device's tokens; the
+    match is sequence-wide, the same on every device."""
+    found = dict(chunk=chunk, dtype=dtype, transform=transform, per_frame=plan.per_frame)
     part = plan.partition
     b = metric.shape[0]
     n_dst, n_src, r, U = plan.n_dst, plan.n_src, plan.r, plan.n_unm

@@ -43,7 +43,7 @@ from rvggt_jax.ops import chunks
 from rvggt_jax.ops.attention import attention, log_sizes
 from rvggt_jax.ops.ordering import ordered_after, zeros_after
 from rvggt_jax.ops.ring import ring_attention
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import frame_layout
 
 
 class MergedRows(NamedTuple):
@@ -73,7 +73,7 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     of heads after another (`head_groups`), each group's sums made after the previous
     group's output."""
     match, state = layer_match(p_block, x, plan, config, state)
-    share = merged_rows(match, plan, state.shards)
+    share = merged_rows(match, plan)
     slots, state = key_slots(plan, config, match, state)
     b, c = x.shape[0], x.shape[-1]
     groups = head_groups(config.num_heads, config.compression.merge_head_groups)
@@ -81,7 +81,7 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
 
     def group_attention(x, p_heads, heads, after):
         """(x, attention output [B, rows, heads, D]) of one group of heads."""
-        x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, state.shards, heads, after)
+        x, qm, km, vm = merged_qkv(p_heads, x, pos, match, share, plan, config, heads, after)
         if plan.protected_rows:
             qm, km, vm = own_qkv(p_heads, x, pos, (qm, km, vm), share, plan, config, state, heads)
 
@@ -90,9 +90,9 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
             if plan.n_dup_all:
                 q = jnp.concatenate([qm, protected_queries(p_heads, x, pos, plan, config, state, heads)], axis=1)
                 return attend_duplicates(q, keys, plan, config, state, dyn)
-            return attend(qm, keys, plan, config, state.shards, dyn=dyn)
+            return attend(qm, keys, plan, config, dyn=dyn)
 
-        return x, within_capacity(attend_slots, slots, plan, state.shards)
+        return x, within_capacity(attend_slots, slots, plan)
 
     if len(groups) == 1:
         x, out = group_attention(x, p_block, config.num_heads, match.group)
@@ -123,7 +123,7 @@ def merging_block(p_block: Params, x: jax.Array, pos: layers.RopeTables, plan: L
     own = own_rows(plan, x, state)
     if plan.protected_rows:  # a protected dst takes its own row among the U rows
         share, own = share._replace(group=jnp.where(own >= 0, plan.n_dst + own, share.group)), None
-    return unmerge_block(p_block, x, out, share, config, state.shards, own), state
+    return unmerge_block(p_block, x, out, share, plan, config, own), state
 
 
 def head_groups(num_heads: int, groups: int) -> tuple[range, ...]:
@@ -159,24 +159,25 @@ def layer_match(p_block: Params, x: jax.Array, plan: LayerPlan, config, state: S
     protected = state.protected
     protected_src = None if protected is None else jnp.take(protected, plan.partition.src_pos, axis=1, mode="clip")
     match = merge_lib.compute_match(x, protected_src, plan, config.compression.match_chunk, dtype, norm1,
-                                    state.shards, state.protected_pos)
+                                    state.protected_pos)
     if plan.match_key is not None:
         state = state.with_match(plan.match_key, match)
     return match, state
 
 
-def merged_rows(match: Match, plan: LayerPlan, shards: FrameShards) -> MergedRows:
+def merged_rows(match: Match, plan: LayerPlan) -> MergedRows:
     """This device's share of the match's merged rows."""
-    n_groups = plan.n_query + int(shards.padded > shards.frames)
-    rows = shards.share(n_groups)
-    group = shards.local_part(match.group, 1, plan.per_frame, pad_value=plan.n_query)
-    first = shards.index() * rows
-    padded = jnp.pad(match.sizes, ((0, 0), (0, rows * shards.devices - plan.n_query)), constant_values=1.0)
+    layout = frame_layout(frames=plan.frames)
+    n_groups = plan.n_query + int(layout.padded > layout.frames)
+    rows = layout.share(n_groups)
+    group = layout.local_part(match.group, 1, plan.per_frame, pad_value=plan.n_query)
+    first = layout.index() * rows
+    padded = jnp.pad(match.sizes, ((0, 0), (0, rows * layout.devices - plan.n_query)), constant_values=1.0)
     return MergedRows(rows, first, group, jax.lax.dynamic_slice_in_dim(padded, first, rows, 1))
 
 
 def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Match, share: MergedRows,
-               plan: LayerPlan, config, shards: FrameShards, heads: int, after: jax.Array):
+               plan: LayerPlan, config, heads: int, after: jax.Array):
     """(x, q, k, v): the group means [B, rows, heads, D] of q, k and v (after qk-norm and
     RoPE) of this device's merged rows, for the heads p_block's projections make, x
     passing through the loops; the float32 sums made after `after`. On one device q, k
@@ -186,11 +187,12 @@ def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Mat
     reduce-scattered)."""
     b, c = x.shape[0], x.shape[-1]
     dtype = config.compute_dtype
+    layout = frame_layout(frames=plan.frames)
 
     def rows(parts):
         return layers.block_qkv_rows(p_block, heads, layers.TORCH_LN_EPS, dtype, parts)
 
-    if not shards.sharded:
+    if not layout.sharded:
         return merge_lib.merge_map(rows("qkv"), (x, pos.cos, pos.sin), match, plan.n_query,
                                    bytes_per_row=c * 4 * 2 + 3 * c * 4, dep=after, owned=True)
 
@@ -198,7 +200,7 @@ def merged_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, match: Mat
         # each device projects its tokens, the group sums reduce-scattered
         xs, (vals,) = chunks.map_tokens_through(rows(parts), x, (pos.cos, pos.sin),
                                                 bytes_per_row=b * c * 4 * 2 + c * 4, dep=after)
-        sums = shards.ring_sum_scatter(
+        sums = layout.ring_sum_scatter(
             lambda block, acc: merge_lib.block_sums(vals, share.group - block * share.rows, share.rows, into=acc))
         sizes = merge_lib.mean_divisor(share.sizes)[..., None, None]
         return xs, merge_lib.materialized((sums / sizes).astype(vals.dtype))
@@ -229,14 +231,14 @@ def key_slots(plan: LayerPlan, config, match: Match, state: State) -> tuple[tupl
     return (sel, valid), state
 
 
-def within_capacity(attend_slots, slots: tuple | None, plan: LayerPlan, shards: FrameShards) -> jax.Array:
+def within_capacity(attend_slots, slots: tuple | None, plan: LayerPlan) -> jax.Array:
     """`attend_slots(slots, dyn)` with the layer's first `n_dyn_cap` dynamic K/V slots
     when this data fills no more of them (compacted: the filled ones come first), else
     with all `n_dyn` (`lax.cond`): the slots left out are empty, so both branches give
     the same values, and the short one attends with the slots a sequence typically fills.
     Every slot on a layer without dynamic slots, and over devices (the ring's keys are
     each device's merged rows)."""
-    if slots is None or shards.sharded or plan.n_dyn_cap >= plan.n_dyn:
+    if slots is None or frame_layout(frames=plan.frames).sharded or plan.n_dyn_cap >= plan.n_dyn:
         return attend_slots(slots, plan.n_dyn)
     sel, valid = slots
     m = plan.n_fixed + plan.n_dyn_cap
@@ -251,8 +253,8 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
     dst once more, un-merged, size 1 (the authors' artefact; `n_dup_all` slots, dst first,
     those of protected src masked). Over devices, the keys are
     this device's merged rows, those the layer does not keep masked out."""
-    comp, shards = config.compression, state.shards
-    ring = shards.sharded
+    comp = config.compression
+    ring = state.layout.sharded
     b = km.shape[0]
     own_rows = share.first + jnp.arange(share.rows)
     if slots is None:
@@ -275,7 +277,7 @@ def kept_keys(p_block: Params, x: jax.Array, pos: layers.RopeTables, km: jax.Arr
     dup = None
     if plan.n_dup_all:
         protected_pos = state.protected_pos
-        dk, dv = rows_kv(p_block, x, protected_pos, pos, config, shards, plan.per_frame, heads)
+        dk, dv = rows_kv(p_block, x, protected_pos, pos, config, plan, heads)
         # only protected dst come twice: the authors drop protected src from both lists
         dup_ok = jnp.take(jnp.asarray(plan.partition.is_dst), protected_pos, mode="clip")
         if plan.kv_mode == "select" and not (comp.kv_protect_saliency and comp.protect == "saliency"):
@@ -299,7 +301,7 @@ def own_qkv(p_block: Params, x: jax.Array, pos: layers.RopeTables, merged: tuple
     qk-norm and RoPE of its row alone). A protected src's row is its own mean already;
     a protected dst's row has no member (it stays in its dst group) until written here."""
     idx = state.protected_pos  # [B, U]
-    rows = state.shards.take_rows(x, idx, plan.per_frame)
+    rows = state.layout.take_rows(x, idx, plan.per_frame)
     own = layers.block_qkv(p_block, rows, heads, pos.frame_rows(idx % plan.per_frame), dtype=config.compute_dtype)
     b, u = idx.shape
     rel = plan.n_dst + jnp.arange(u, dtype=jnp.int32) - share.first  # their rows in this device's share
@@ -313,7 +315,7 @@ def protected_queries(p_block: Params, x: jax.Array, pos: layers.RopeTables, pla
     device): the authors append every protected token once more to the sequence, so
     each is a query of its own."""
     idx = state.protected_pos
-    rows = state.shards.take_rows(x, idx, plan.per_frame)
+    rows = state.layout.take_rows(x, idx, plan.per_frame)
     (q,) = layers.block_qkv(p_block, rows, heads, pos.frame_rows(idx % plan.per_frame), dtype=config.compute_dtype,
                             parts="q")
     return q
@@ -330,7 +332,7 @@ def own_rows(plan: LayerPlan, x: jax.Array, state: State) -> jax.Array | None:
         return None
     b, n = x.shape[:2]
     idx = state.protected_pos  # [B, n_dup_all] global positions, dst first
-    rel = idx - state.shards.offset(plan.per_frame)
+    rel = idx - state.layout.offset(plan.per_frame)
     is_dst = jnp.take(jnp.asarray(plan.partition.is_dst), idx, mode="clip")
     mine = is_dst & (rel >= 0) & (rel < n)
     slot = jnp.broadcast_to(jnp.arange(idx.shape[1], dtype=jnp.int32), idx.shape)
@@ -347,24 +349,24 @@ def attend_duplicates(qm: jax.Array, keys: Keys, plan: LayerPlan, config, state:
     (`lax.cond`: the values do not depend on the branch). Over devices all of them.
     `dyn`: the dynamic K/V slots among the keys (`within_capacity`)."""
     extra = plan.n_dup_all - plan.n_dup
-    if state.shards.sharded or not extra:
-        return attend(qm, keys, plan, config, state.shards, plan.n_dup_all, dyn)
+    if state.layout.sharded or not extra:
+        return attend(qm, keys, plan, config, plan.n_dup_all, dyn)
 
     def capped(qm, keys):
         m = keys.k.shape[1] - extra
         cut = Keys(keys.k[:, :m], keys.v[:, :m], keys.sizes[:, :m], keys.valid[:, :m], None)
-        out = attend(qm[:, :qm.shape[1] - extra], cut, plan, config, state.shards, dyn=dyn)
+        out = attend(qm[:, :qm.shape[1] - extra], cut, plan, config, dyn=dyn)
         return jnp.pad(out, ((0, 0), (0, extra), (0, 0), (0, 0)))
 
     if config.compression.protect == "stride":  # the protected dst are the first n_dup, statically
         return capped(qm, keys)
     is_dst = jnp.take(jnp.asarray(plan.partition.is_dst), state.protected_pos, mode="clip")
     overflow = jnp.any(jnp.sum(is_dst, axis=1) > plan.n_dup)
-    return jax.lax.cond(overflow, lambda q, k: attend(q, k, plan, config, state.shards, plan.n_dup_all, dyn),
+    return jax.lax.cond(overflow, lambda q, k: attend(q, k, plan, config, plan.n_dup_all, dyn),
                         capped, qm, keys)
 
 
-def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShards, dup: int | None = None,
+def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, dup: int | None = None,
            dyn: int | None = None) -> jax.Array:
     """The merged queries [B, rows, H, D] (then, with `n_dup`, the protected tokens' own
     queries [B, dup, H, D], dup defaulting to n_dup) against the layer's keys (`dyn`
@@ -372,27 +374,28 @@ def attend(qm: jax.Array, keys: Keys, plan: LayerPlan, config, shards: FrameShar
     slots masked) -> [B, rows (+ dup), H, D]."""
     comp = config.compression
     dup = plan.n_dup if dup is None else dup
+    layout = frame_layout(frames=plan.frames)
 
     def bias(g, valid, masked):
         if not plan.size_column and not masked:
             return None
         return log_sizes(g if comp.size_bias and plan.size_column else jnp.ones_like(g), valid if masked else None)
 
-    if shards.sharded:
+    if layout.sharded:
         # (the padding rows are always masked; log 1 = 0 keeps a layer without the size
         # column exact)
         dup = keys.dup
         extra = () if dup is None else ((dup[0], dup[1], bias(dup[2], dup[3], plan.masked)),)
         log_g = bias(keys.sizes, keys.valid, True)
         # Q and K made after V's sums (else they sit through V's sums)
-        return ring_attention(ordered_after(qm, keys.v), ordered_after(keys.k, keys.v), keys.v, log_g, shards,
+        return ring_attention(ordered_after(qm, keys.v), ordered_after(keys.k, keys.v), keys.v, log_g, layout,
                               extra, implementation=config.attention)
     log_g = bias(keys.sizes, keys.valid, plan.masked) if plan.size_column else None
     check_shapes(plan, comp, qm.shape[1] - dup, keys.k, log_g, dup, dyn)
     return attention(qm, keys.k, keys.v, log_g, implementation=config.attention)
 
 
-def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, config, shards: FrameShards,
+def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRows, plan: LayerPlan, config,
                   own: jax.Array | None = None) -> jax.Array:
     """The block around the merged attention: its hook unmerges the projected merged rows
     out [B, rows (+ n_dup_all), C], each token taking its group's row (over devices, the
@@ -400,11 +403,12 @@ def unmerge_block(p_block: Params, x: jax.Array, out: jax.Array, share: MergedRo
     its own row (the n_dup_all rows after the merged ones; every device holds them all)."""
     cfg = layers.BlockConfig.of(config)
     group = share.group
-    if not shards.sharded:
+    layout = frame_layout(frames=plan.frames)
+    if not layout.sharded:
         if own is not None:
             group = jnp.where(own >= 0, share.rows + own, group)
         return layers.chunked_block(p_block, x, lambda gc: lambda h: merge_lib.unmerge(out, gc), (group,), cfg)
-    rows = shards.ring_take(out[:, :share.rows], group)
+    rows = layout.ring_take(out[:, :share.rows], group)
     if own is not None:
         mine = chunks.take_along(out[:, share.rows:], jnp.maximum(own, 0), axis=1)
         rows = jnp.where((own >= 0)[..., None], mine, rows)

@@ -1,9 +1,9 @@
 """The per-forward compression state: what the global blocks share from one layer to the
-next. A `State` (a pytree; geometry and shards static) holds the protection flags (from
+next. A `State` (a pytree; geometry static) holds the protection flags (from
 the DINOv2 [CLS] saliency Psi, or a stride), the band-aligned match cache {cache key:
 `Match`} and the K/V slots of cached matches {(cache key, tile): `KVSlots`}.
 
-    state = init_state(config.compression, saliency, geometry, shards)   # once per forward
+    state = init_state(config.compression, saliency, geometry)   # once per forward
 """
 
 from __future__ import annotations
@@ -18,32 +18,34 @@ from rvggt_jax.compression.config import CompressionConfig
 from rvggt_jax.compression.kv import KVSlots
 from rvggt_jax.compression.merge import Match, compact
 from rvggt_jax.compression.partition import Geometry, partition, saliency_protect_count, stride_protected
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import FrameShards, frame_layout
 
 
 class State(NamedTuple):
     """The per-forward compression state (see the module docstring)."""
 
     geometry: Geometry  # static: frames, grid, special tokens
-    shards: FrameShards  # static: the frames of x on this device
     protected: jax.Array | None  # [B, N] bool, the Psi- (or stride-) protected tokens (None without protection)
     protected_pos: jax.Array | None  # [B, P] int32, their positions
     matches: dict[str, Match]  # the band-aligned match cache
     kv: dict[tuple[str, tuple[int, int]], KVSlots]  # the dynamic K/V slots of cached matches
 
+    @property
+    def layout(self) -> FrameShards:
+        """How the sequence's frames lie over devices in the program being traced."""
+        return frame_layout(frames=self.geometry.frames)
+
     def with_match(self, key: str, match: Match) -> "State":
         return self._replace(matches={**self.matches, key: match})
 
 
-def init_state(comp: CompressionConfig, saliency: jax.Array | None, geom: Geometry,
-               shards: FrameShards | None = None) -> State:
+def init_state(comp: CompressionConfig, saliency: jax.Array | None, geom: Geometry) -> State:
     """Per-forward state: protection flags from the saliency Psi [B, S, h*w] of every frame
-    (`shards`: the frames of this device, default all).
+    of the sequence.
 
     Protected patches of a frame s >= 1: its top max(1, floor(alpha*T)) patches under Psi
     (`lax.top_k`); with `protect="stride"` a fixed stride over the sequence (FastVGGT)."""
     frames, L, N = geom.frames, geom.per_frame, geom.tokens
-    shards = FrameShards.single(frames) if shards is None else shards
     protected = protected_pos = None
     if comp.protect == "saliency":
         per_frame = saliency_protect_count(geom, comp.alpha)
@@ -66,7 +68,7 @@ def init_state(comp: CompressionConfig, saliency: jax.Array | None, geom: Geomet
         protected = jnp.broadcast_to(jnp.asarray(flags), (b, N))
     if comp.duplicate_protected and protected_pos is not None:
         protected_pos = dst_first(protected_pos, partition(geom, comp.dst_seed).is_dst)
-    return State(geom, shards, protected, protected_pos, {}, {})
+    return State(geom, protected, protected_pos, {}, {})
 
 
 def dst_first(pos: jax.Array, is_dst: np.ndarray) -> jax.Array:

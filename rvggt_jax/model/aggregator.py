@@ -22,7 +22,7 @@ from rvggt_jax.model import layers, remat
 from rvggt_jax.model.kept import KeptLayer, KeptLayers, ProjectedLayer, Projection, weights_after
 from rvggt_jax.model.params import Params
 from rvggt_jax.model.patch_embed import patch_embed_tokens
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import frame_layout
 
 
 def special_tokens(token: jax.Array, b: int, frame_ids: jax.Array) -> jax.Array:
@@ -36,7 +36,7 @@ def special_tokens(token: jax.Array, b: int, frame_ids: jax.Array) -> jax.Array:
 
 def aggregator_forward(
     p: Params, images: jax.Array, config: VGGTConfig, keep_layers: Iterable[int],
-    shards: FrameShards | None = None, project: Mapping[int, Projection] | None = None,
+    project: Mapping[int, Projection] | None = None,
 ) -> tuple[dict[int, KeptLayer | ProjectedLayer], jax.Array, jax.Array]:
     """images [B, S, 3, H, W] in [0, 1] -> ({layer: `KeptLayer` [B, S, P, 2C]} for
     `keep_layers` and {layer: `ProjectedLayer`} for `project` (its `raw` the `KeptLayer`
@@ -45,28 +45,26 @@ def aggregator_forward(
     Upstream's loop: patch embed, RoPE tables, then per layer a frame block and a global
     block (dense, or RegimeVGGT's under the compression state), as one `lax.scan` per run
     of layers sharing a static global plan (`layer_groups`); `kept.KeptLayers` decides
-    where the kept layers go. With `shards` (inside `jax.shard_map`), S is this device's
-    frames and the global blocks attend across all devices."""
+    where the kept layers go. With the frames split over devices (`ops.shards.frame_layout`),
+    S is this device's frames and the global blocks attend across all devices."""
     b, s, _, hh, ww = images.shape
-    shards = FrameShards.single(s) if shards is None else shards
-    if s != shards.local:
-        raise ValueError(f"{s} frames on this device but the shards say {shards.local}")
+    layout = frame_layout(s)
     project = dict(project or {})
-    tokens, patch_tokens, saliency = input_tokens(p, images, config, shards)
+    tokens, patch_tokens, saliency = input_tokens(p, images, config)
     shape = (b, s) + tokens.shape[1:]  # (B, S, P, C)
-    geom = compression.Geometry(shards.frames, hh // config.patch_size, ww // config.patch_size,
+    geom = compression.Geometry(layout.frames, hh // config.patch_size, ww // config.patch_size,
                                 config.patch_start_idx)
     pos = rope_tables(geom, config, s)
     state = None
     if not config.compression.is_dense:
         # (sequence-wide: every device holds all of it, from every frame's saliency)
-        state = compression.init_state(config.compression, shards.gather(saliency, 1), geom, shards)
+        state = compression.init_state(config.compression, layout.gather(saliency, 1), geom)
 
     x = tokens.reshape(b, s * shape[2], shape[3])
     kept = KeptLayers.start(config.depth, keep_layers, project, shape, config.compute_dtype, saliency)
     projected = {}
     for group in kept.scans(layer_groups(config, geom)):
-        x, kept, state = _scan_layers(p, x, kept, group, pos, geom, config, shards, state)
+        x, kept, state = _scan_layers(p, x, kept, group, pos, geom, config, state)
         if group[-1] in project:
             kept, projected[group[-1]], after = kept.project(group[-1], x, project[group[-1]], shape)
             p = weights_after(p, after)
@@ -76,15 +74,14 @@ def aggregator_forward(
     return out, patch_tokens, saliency
 
 
-def input_tokens(p: Params, images: jax.Array, config: VGGTConfig, shards: FrameShards
-                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
+def input_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The aggregator's input: (tokens [B*S, P, C] = camera, registers and DINO patch
     tokens of every frame, patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w])."""
     b, s, _, hh, ww = images.shape
     ps = config.patch_size
     dino, num_prefix, saliency = patch_embed_tokens(p["patch_embed"], images, config)
     patch_tokens = dino[:, num_prefix:]
-    frame_ids = shards.frame_ids()
+    frame_ids = frame_layout(s).frame_ids()
     special = jnp.concatenate([special_tokens(p["camera_token"], b, frame_ids),
                                special_tokens(p["register_token"], b, frame_ids)], axis=1).astype(dino.dtype)
     if num_prefix == special.shape[1]:
@@ -139,15 +136,15 @@ def rope_tables(geom: compression.Geometry, config: VGGTConfig, frames: int
 
 
 def _scan_layers(p: Params, x: jax.Array, kept: KeptLayers, group: tuple[int, ...], pos: tuple,
-                 geom: compression.Geometry, config: VGGTConfig, shards: FrameShards, state):
+                 geom: compression.Geometry, config: VGGTConfig, state):
     """The layers `group` (one static global plan) as one `lax.scan` over
     (x [B, S*P, C], the kept layers): each layer a frame block, its output kept, then a
     global block (dense, or under the compression `state`), kept too when the kept
     layers store global halves there. Returns (x, kept, state), the state with the band's
     match when the group computes and stores one."""
     b, n, c = x.shape
-    s = shards.local
-    num_tokens = n // s
+    num_tokens = geom.per_frame
+    s = n // num_tokens
     frame_pos, global_pos = pos
     cfg = layers.BlockConfig.of(config)
     store = kept.stores_global(group)
@@ -166,7 +163,7 @@ def _scan_layers(p: Params, x: jax.Array, kept: KeptLayers, group: tuple[int, ..
         x, kept, p_global = kept.before_global_block(x, p_global, single=len(group) == 1)
         x = x.reshape(b, s * num_tokens, c)
         if state is None:
-            x = layers.dense_global_block(p_global, x, global_pos, config, shards, num_tokens)
+            x = layers.dense_global_block(p_global, x, global_pos, config, num_tokens)
         else:
             x, after = compression.global_block(p_global, x, global_pos, group[0], config, state)
             if band:

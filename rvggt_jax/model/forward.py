@@ -23,7 +23,7 @@ from rvggt_jax.model.aggregator import aggregator_forward
 from rvggt_jax.ops.ordering import zeros_after
 from rvggt_jax.ops.precision import precision_scope
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import frame_layout
 from rvggt_jax.model.heads.camera import camera_head
 from rvggt_jax.model.patch_embed import unit_images
 from rvggt_jax.model.heads.dpt import dense_heads
@@ -62,14 +62,14 @@ def rvggt_forward(params: Params, images: jax.Array, config: VGGTConfig,
     return forward_frames(params, images, config, query_points)
 
 
-def forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None = None,
-                   shards: FrameShards | None = None) -> dict[str, Any]:
+def forward_frames(params: Params, images: jax.Array, config: VGGTConfig,
+                   query_points: jax.Array | None = None) -> dict[str, Any]:
     """`rvggt_forward` on checked inputs, over the frames of this device: images
-    [B, S, 3, H, W] are this device's frames (`shards`, inside `jax.shard_map`; default
-    all frames on one device) and so is every per-frame output. Every float32 matmul
-    inside runs at `config.dot_precision`."""
+    [B, S, 3, H, W] are this device's frames (inside `parallel/`'s `jax.shard_map`, which
+    enters `ops.shards.split_frames`; elsewhere all frames) and so is every per-frame
+    output. Every float32 matmul inside runs at `config.dot_precision`."""
     with config_scope(config):
-        return _forward_frames(params, images, config, query_points, shards)
+        return _forward_frames(params, images, config, query_points)
 
 
 @contextlib.contextmanager
@@ -115,10 +115,9 @@ def frame_descriptors(patch_tokens: jax.Array, batch: int) -> jax.Array:
     return d.reshape(batch, -1, d.shape[-1])
 
 
-def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None,
-                    shards: FrameShards | None) -> dict[str, Any]:
+def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query_points: jax.Array | None
+                    ) -> dict[str, Any]:
     b, s, _, hh, ww = images.shape
-    shards = FrameShards.single(s) if shards is None else shards
     with_track = query_points is not None
     # The heads compute in float32 whatever dtype their weights are stored in (a tree cast
     # whole to bf16, the usual JAX idiom, would otherwise change the camera head's scan
@@ -130,21 +129,22 @@ def _forward_frames(params: Params, images: jax.Array, config: VGGTConfig, query
     per_group = functools.partial(remat.checkpoint, config=config, part="head")
     project = _head_projections(params, config, grid, with_track, enabled, per_group)
     keep = (set(config.needed_layers(with_track)) - set(project)) | set(config.return_layers)
-    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, shards, project)
+    agg, patch_tokens, saliency = aggregator_forward(params["aggregator"], images, config, keep, project)
 
     out: dict[str, Any] = {}
     if config.enable_camera:
         # the camera trunk attends across frames: every device runs it on every frame's
         # camera token (B x S x 2C floats) and keeps its own frames
-        cam = shards.gather(agg[config.depth - 1].token(0)[:, :, None], 1)
-        pose_enc_list = [shards.local_part(pe, 1) for pe in camera_head(params["camera_head"], cam, config.camera_head)]
+        layout = frame_layout(s)
+        cam = layout.gather(agg[config.depth - 1].token(0)[:, :, None], 1)
+        pose_enc_list = [layout.local_part(pe, 1) for pe in camera_head(params["camera_head"], cam, config.camera_head)]
         out["pose_enc"] = pose_enc_list[-1]
         out["pose_enc_list"] = pose_enc_list
     out.update(dense_heads({name: params[name] for name, on in enabled.items() if on}, agg, config.dpt_head, grid,
                            per_group, half_outputs=config.low_memory))
     if with_track:
         tracks, vis, conf = track_head(params["track_head"], agg, config.track_head_config, grid, query_points,
-                                       shards=shards, remat=per_group)
+                                       remat=per_group)
         out["track"], out["vis"], out["conf"] = tracks[-1], vis, conf
     if config.return_images:
         # a copy of the input (an argument cannot be an output), made at the end (x 1 made

@@ -21,7 +21,7 @@ import numpy as np
 
 from rvggt_jax.ops.attention import NEG_BIAS, attention
 from rvggt_jax.ops.ring import ring_attention
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import frame_layout
 from rvggt_jax.ops import chunks
 from rvggt_jax.ops.chunks import map_tokens, update_tokens
 from rvggt_jax.ops.ordering import ordered_after
@@ -320,28 +320,28 @@ def sequence_block(p: Params, x: jax.Array, pos: "jax.Array | RopeTables | None"
     return chunked_block(p, x, lambda *tc: attention_to(p, cfg, k, v, None, *tc), tables, cfg)
 
 
-def dense_global_block(p_block: Params, x: jax.Array, pos, config, shards: FrameShards | None = None,
-                       per_frame: int = 0) -> jax.Array:
+def dense_global_block(p_block: Params, x: jax.Array, pos, config, per_frame: int) -> jax.Array:
     """Upstream's global block: `sequence_block` over the whole sequence, each token
     attending to every token of every frame (RegimeVGGT's compressed global blocks are
     `rvggt_jax.compression.global_block`). x [B, N, C] (N = S * per_frame tokens of this device's
     frames); pos: the sequence's RoPE tables [1, N, 1, D] (or integer positions
-    [1, N, 2]); config: the `VGGTConfig` (heads, RoPE, compute dtype). Split over devices
-    (`shards`), its queries attend to every device's keys around the ring; padding frames
-    are masked."""
+    [1, N, 2]); config: the `VGGTConfig` (heads, RoPE, compute dtype). With the frames
+    split over devices (`ops.shards.frame_layout`), its queries attend to every device's
+    keys around the ring; padding frames are masked."""
     heads, dtype = config.num_heads, config.compute_dtype
     cfg = BlockConfig.of(config)
-    if shards is None or not shards.sharded:
-        return sequence_block(p_block, x, pos, cfg)
     b, n, c = x.shape
+    layout = frame_layout(n // per_frame)
+    if not layout.sharded:
+        return sequence_block(p_block, x, pos, cfg)
     if not isinstance(pos, RopeTables):
         pos = RopeTables.from_positions(pos, c // heads, config.rope_freq)
     q, k, v = block_qkv(p_block, x, heads, pos, dtype=dtype)
     mask = None
-    if shards.padded > shards.frames:
-        real = shards.offset(per_frame) + jnp.arange(n) < shards.frames * per_frame
+    if layout.padded > layout.frames:
+        real = layout.offset(per_frame) + jnp.arange(n) < layout.frames * per_frame
         mask = jnp.broadcast_to(jnp.where(real, 0.0, NEG_BIAS).astype(jnp.float32), (b, n))
-    out = ring_attention(q, k, v, mask, shards, implementation=config.attention)
+    out = ring_attention(q, k, v, mask, layout, implementation=config.attention)
     # the block around the ring's output rows
     return chunked_block(p_block, x, lambda oc: lambda h: project(p_block, oc), (out,), cfg)
 

@@ -3,6 +3,15 @@
     shards = FrameShards.single(frames)                 # one device: every op below is local
     shards = FrameShards(frames, devices=4)             # inside shard_map over axis "frames"
 
+    with split_frames(shards):                          # parallel/, inside its shard_map
+        out = forward_frames(params, images, config)    # the model asks frame_layout(S)
+
+The model never takes the layout as an argument: `parallel/` (and the sharded train
+step) enter `split_frames` inside the body of their `shard_map`, and each model function
+that crosses frames asks `frame_layout(frames_here)` while it is traced. The layout is
+static (it shapes the program, like the mesh), so it belongs to the trace, not to the
+data; outside a split every frame is on this device.
+
 Device d holds frames [d * local, (d + 1) * local) of the sequence padded to
 `devices * local` frames (the padding frames are zeros, at the end, and never reach a
 real token: every cross-frame op below drops them). The forward pass is one program for
@@ -17,9 +26,11 @@ frames x tokens into one axis of `frames * L` rows.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -220,3 +231,37 @@ class FrameShards:
 
 
 jax.tree_util.register_static(FrameShards)
+
+
+_SPLIT: contextvars.ContextVar[FrameShards | None] = contextvars.ContextVar("rvggt_frame_split", default=None)
+
+
+@contextlib.contextmanager
+def split_frames(shards: FrameShards) -> Iterator[FrameShards]:
+    """Trace the model inside with its frames laid out as `shards` (entered inside the
+    body of a `jax.shard_map` over `shards.axis`, so that the body is traced under it
+    whenever JAX traces it)."""
+    token = _SPLIT.set(shards)
+    try:
+        yield shards
+    finally:
+        _SPLIT.reset(token)
+
+
+def frame_layout(local: int | None = None, *, frames: int | None = None) -> FrameShards:
+    """How the frames of the program being traced lie: the split entered by
+    `split_frames`, or else all of them on this device. Give this device's frame count
+    (`local`) or the sequence's (`frames`); a split that disagrees is an error, not a
+    silent single-device program."""
+    split = _SPLIT.get()
+    if split is None:
+        n = local if local is not None else frames
+        if n is None:
+            raise ValueError("frame_layout needs this device's frame count or the sequence's")
+        return FrameShards.single(n)
+    if local is not None and local != split.local:
+        raise ValueError(f"{local} frames on this device, but the frames are split as {split.frames} over "
+                         f"{split.devices} devices ({split.local} a device)")
+    if frames is not None and frames != split.frames:
+        raise ValueError(f"a sequence of {frames} frames, but the split is of {split.frames}")
+    return split

@@ -22,7 +22,7 @@ from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from rvggt_jax.config import VGGTConfig
-from rvggt_jax.ops.shards import FRAMES_AXIS, FrameShards
+from rvggt_jax.ops.shards import FRAMES_AXIS, FrameShards, split_frames
 from rvggt_jax.model.layers import Params
 from rvggt_jax.model.forward import forward_frames
 from rvggt_jax.model.inputs import check_inputs
@@ -86,7 +86,8 @@ def sharded_forward(params: Params, images: jax.Array, config: VGGTConfig, mesh:
     images = _constrain(images, NamedSharding(mesh, frames))
 
     def local(params, images, *qp):
-        out = forward_frames(params, images, config, qp[0] if qp else None, shards)
+        with split_frames(shards):
+            out = forward_frames(params, images, config, qp[0] if qp else None)
         if "patch_tokens" in out:  # [B*S, ...]: frames along axis 1 like every other output
             out["patch_tokens"] = out["patch_tokens"].reshape((b, shards.local) + out["patch_tokens"].shape[1:])
         return out

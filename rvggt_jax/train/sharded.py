@@ -46,7 +46,7 @@ from rvggt_jax.config import VGGTConfig
 from rvggt_jax.errors import InputError
 from rvggt_jax.model.forward import forward_frames
 from rvggt_jax.model.inputs import check_inputs
-from rvggt_jax.parallel.sharded import FRAMES_AXIS, frame_shards
+from rvggt_jax.parallel.sharded import FRAMES_AXIS, frame_shards, split_frames
 from rvggt_jax.train.step import TrainConfig, TrainState, divisors, train_step_fn
 
 DATA_AXIS = "data"
@@ -225,7 +225,8 @@ def sharded_train_forward(params: Any, images: jax.Array, query_points: jax.Arra
     block = P(DATA_AXIS, FRAMES_AXIS)
 
     def local(params, images, *qp):
-        return forward_frames(params, images, config, qp[0] if qp else None, shards)
+        with split_frames(shards):
+            return forward_frames(params, images, config, qp[0] if qp else None)
 
     extra = () if query_points is None else (query_points,)
     # check_vma=False as the inference's shard_map: its collectives (ring permutes, a

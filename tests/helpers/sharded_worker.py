@@ -5,6 +5,7 @@ XLA's host platform has to be told to make 4 CPU devices before JAX starts.
 Prints one JSON object: per check, the measured errors and facts the test asserts on.
 """
 
+import functools
 import json
 import os
 import sys
@@ -21,7 +22,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
 import rvggt_jax  # noqa: E402
-from rvggt_jax.ops.shards import FrameShards  # noqa: E402
+from rvggt_jax.ops.shards import FrameShards, split_frames  # noqa: E402
 from rvggt_jax.model.heads.tracker import track_predictor  # noqa: E402
 from rvggt_jax.parallel.sharded import frames_mesh, sharded_forward  # noqa: E402
 from tests.helpers.paths import TINY  # noqa: E402
@@ -80,6 +81,12 @@ def ring_gradient() -> dict:
     permutes = {what: jax.jit(fn).lower(*args).as_text().count("collective_permute")
                 for what, fn in (("forward", ring), ("gradient", jax.grad(ring, range(7))))}
     return {"errors": errors, "permutes": permutes}
+
+
+def split_tracker(p, config, shards, fmaps, queries):
+    """The tracker alone, traced with its frames split as `shards` (a shard_map's body)."""
+    with split_frames(shards):
+        return track_predictor(p, queries, fmaps, config)
 
 
 def train_steps() -> dict:
@@ -246,7 +253,7 @@ def main() -> None:
     for devices in (4, 3):
         shards = FrameShards(frames, devices, "frames")
         fm = jnp.pad(fmaps, ((0, 0), (0, shards.padded - frames), (0, 0), (0, 0), (0, 0)))
-        fn = jax.shard_map(lambda f, q: track_predictor(p, q, f, config.track_head, shards=shards),
+        fn = jax.shard_map(functools.partial(split_tracker, p, config.track_head, shards),
                            mesh=frames_mesh(devices), in_specs=(P(None, "frames"), P()),
                            out_specs=(P(None, None, "frames"), P(None, "frames"), P(None, "frames")),
                            check_vma=False)

@@ -12,7 +12,6 @@ from typing import Callable
 import jax
 
 from rvggt_jax.config import TokenGrid, TrackHeadConfig
-from rvggt_jax.ops.shards import FrameShards
 from rvggt_jax.model.heads.dpt import Aggregated, dpt_features
 from rvggt_jax.model.heads.tracker import track_predictor
 from rvggt_jax.model.params import Params
@@ -34,7 +33,7 @@ def track_features(params: Params, aggregated: Aggregated, config: TrackHeadConf
 
 
 def track_head(params: Params, aggregated: Aggregated, config: TrackHeadConfig, grid: TokenGrid,
-               query_points: jax.Array, *, iters: int | None = None, shards: FrameShards | None = None,
+               query_points: jax.Array, *, iters: int | None = None,
                remat: Callable | None = None) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Upstream `TrackHead.forward`.
 
@@ -48,12 +47,12 @@ def track_head(params: Params, aggregated: Aggregated, config: TrackHeadConfig, 
 
     Returns (track_list [iters, B, S, N, 2] pixel (x, y), one entry per iteration, the last
     being the prediction; vis [B, S, N] and conf [B, S, N] in (0, 1), conf None when
-    `config.predict_conf` is off). `shards`: the frames of this device (see
-    `track_predictor`). `remat`: how the feature extractor's frame groups run in a
+    `config.predict_conf` is off); with the frames split over devices, those of this
+    device (see `track_predictor`). `remat`: how the feature extractor's frame groups run in a
     training step (`dpt.map_frame_groups`).
     """
     if query_points.ndim != 3 or query_points.shape[-1] != 2:
         raise ValueError(f"query_points must be [B, N, 2] (add the batch axis to [N, 2]), "
                          f"got shape {query_points.shape}")
     fmaps = track_features(params, aggregated, config, grid, remat)
-    return track_predictor(params["tracker"], query_points, fmaps, config, iters=iters, shards=shards)
+    return track_predictor(params["tracker"], query_points, fmaps, config, iters=iters)

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvggt_jax.model import layers
-from rvggt_jax.ops.shards import FrameShards
+from rvggt_jax.ops.shards import frame_layout
 from rvggt_jax.config import TrackHeadConfig
 from rvggt_jax.model.params import Params
 
@@ -342,8 +342,7 @@ def update_former(p: Params, x: jax.Array, num_heads: int = UPDATE_FORMER_NUM_HE
 
 
 def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config: TrackHeadConfig,
-                    iters: int | None = None, down_ratio: int = 1, shards: FrameShards | None = None
-                    ) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+                    iters: int | None = None, down_ratio: int = 1) -> tuple[jax.Array, jax.Array, jax.Array | None]:
     """Upstream `BaseTrackerPredictor.forward` (inference; sigmoid applied).
 
     query_points [B, N, 2] pixel (x, y) in frame 0 of the images; fmaps [B, S, h, w, C]
@@ -351,15 +350,16 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
     image pixels, one entry per refinement iteration; vis [B, S, N]; conf [B, S, N] or
     None when `config.predict_conf` is off). Frame 0 always returns the query.
 
-    Split over devices (`shards`): fmaps and the results hold this device's frames; the
-    update transformer, which attends across frames, runs on every frame's [B, N, D]
-    inputs on every device (gathered each iteration) and each keeps its frames."""
+    With the frames split over devices (`ops.shards.frame_layout`): fmaps and the results
+    hold this device's frames; the update transformer, which attends across frames, runs
+    on every frame's [B, N, D] inputs on every device (gathered each iteration) and each
+    keeps its frames."""
     if query_points.ndim != 3 or query_points.shape[-1] != 2:
         raise ValueError(f"query_points must be [B, N, 2], got shape {query_points.shape}")
     b, n, _ = query_points.shape
     fb, s, h, w, c = fmaps.shape
-    shards = FrameShards.single(s) if shards is None else shards
-    first = (shards.frame_ids() == 0)[None, :, None, None]  # [1, S, 1, 1]: global frame 0
+    layout = frame_layout(s)
+    first = (layout.frame_ids() == 0)[None, :, None, None]  # [1, S, 1, 1]: global frame 0
     if fb != b:
         raise ValueError(f"query_points batch {b} != feature maps batch {fb}")
     iters = config.iters if iters is None else iters
@@ -373,7 +373,7 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
     if down_ratio > 1:
         query = query / float(down_ratio)
     query = query / float(config.stride)  # [B, N, 2] in feature pixels
-    query_feat = shards.first(sample_features(fmaps[:, 0], query)[:, None], 1)  # [B, N, C], frame 0's
+    query_feat = layout.first(sample_features(fmaps[:, 0], query)[:, None], 1)  # [B, N, C], frame 0's
 
     d_model = p["query_ref_token"].shape[-1]  # 3C + 4
     pos = sample_grid_embed(d_model, (h, w), query)  # [B, N, D]
@@ -392,8 +392,8 @@ def track_predictor(p: Params, query_points: jax.Array, fmaps: jax.Array, config
         flows_emb = jnp.concatenate(
             [flow_embedding(flows, c // 2), flows / FLOW_MAX_SCALE, flows / FLOW_MAX_SCALE], axis=-1)
         x = jnp.concatenate([flows_emb, corr, feats], axis=-1)  # [B, S, N, D]
-        x = shards.gather(jnp.swapaxes(x, 1, 2) + bias, 2)  # [B, N, S, D], every frame
-        delta = jnp.swapaxes(shards.local_part(update_former(p["updateformer"], x), 2), 1, 2)  # [B, S, N, 2 + C]
+        x = layout.gather(jnp.swapaxes(x, 1, 2) + bias, 2)  # [B, N, S, D], every frame
+        delta = jnp.swapaxes(layout.local_part(update_former(p["updateformer"], x), 2), 1, 2)  # [B, S, N, 2 + C]
         # ffeat_norm is GroupNorm(1, C) on [B*N*S, C] rows: a LayerNorm over C.
         feats = feats + layers.gelu(layers.linear(p["ffeat_updater"]["0"],
                                                   layers.layer_norm(p["ffeat_norm"], delta[..., 2:])))
