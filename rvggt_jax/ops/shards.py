@@ -240,7 +240,9 @@ _SPLIT: contextvars.ContextVar[FrameShards | None] = contextvars.ContextVar("rvg
 def split_frames(shards: FrameShards) -> Iterator[FrameShards]:
     """Trace the model inside with its frames laid out as `shards` (entered inside the
     body of a `jax.shard_map` over `shards.axis`, so that the body is traced under it
-    whenever JAX traces it)."""
+    whenever JAX traces it). Read at trace time only: a `jax.jit` nested inside the model
+    would key its cache without it, so the model's code nests none, and a custom VJP's
+    backward (traced after the block) gets the layout as an argument from its forward."""
     token = _SPLIT.set(shards)
     try:
         yield shards
