@@ -80,6 +80,12 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
     from rvggt_jax.io.images import network_images
 
     batch = jax.numpy.asarray(network_images(images))[None]
+    from rvggt_jax.model.low_memory import low_memory_forward, runs_in_parts
+
+    if mesh is None and compiled is None and runs_in_parts(config):
+        # the low-memory mode runs in parts (`model.low_memory`), as `rvggt plan` plans it
+        out = low_memory_forward(params, batch, config)
+        return {k: np.asarray(out[k])[0].astype(np.float32, copy=False) for k in _OUTPUT_KEYS if k in out}
     forward = rvggt_forward
     if mesh is not None:
         from rvggt_jax.parallel.sharded import input_shardings, sharded_forward

@@ -167,12 +167,14 @@ def _describe(rep, target, label: str) -> list[str]:
     if rep.exhausted:
         lines.append("  arguments, outputs, temporaries: n/a (XLA refused the program before assigning its buffers)")
     else:
-        lines += [f"  arguments    {fmt_bytes(rep.argument_bytes)} (weights + images)",
+        lines += [f"  arguments    {fmt_bytes(rep.argument_bytes)} "
+                  f"({'weights + the part' + chr(39) + 's inputs' if rep.parts else 'weights + images'})",
                   f"  outputs      {fmt_bytes(rep.output_bytes)}",
                   f"  temporaries  {fmt_bytes(rep.temp_bytes)}"]
         if rep.alias_bytes:
             lines.append(f"  aliased      -{fmt_bytes(rep.alias_bytes)}"
-                         + (" (outputs written into the donated images' buffer)" if rep.images_donated else ""))
+                         + (" (outputs written into donated inputs' buffers)" if rep.parts else
+                            " (outputs written into the donated images' buffer)" if rep.images_donated else ""))
     if rep.compiler_checked:
         # no share of the HBM here: this sum is not what the chip holds, and not the verdict
         lines.append(f"  total        {fmt_bytes(rep.total_bytes)}: the sum above, an upper bound, not the verdict "
@@ -180,6 +182,9 @@ def _describe(rep, target, label: str) -> list[str]:
     else:
         lines.append(f"  total        {fmt_bytes(rep.total_bytes)} of {fmt_bytes(rep.memory_bytes)}"
                      f"{share(rep.total_bytes, rep.memory_bytes)}: {rep.memory_what}")
+    if rep.parts:
+        lines.append("  parts        run one after another (the low-memory mode's forward in parts); the "
+                     "figures above are the largest's: " + ", ".join(f"{n} {fmt_bytes(b)}" for n, b in rep.parts))
     if rep.peak_bytes:
         lines.append(f"  peak         {fmt_bytes(rep.peak_bytes)} (XLA's heap simulation of the scheduled program)")
     lines.append(f"  (XLA's plan, compiled in {rep.compile_seconds:.1f} s; nothing ran)")

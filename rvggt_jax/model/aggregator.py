@@ -10,7 +10,7 @@ returned as `KeptLayer`s (`kept.py`).
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable, Mapping
+from typing import Iterable, Mapping, NamedTuple
 
 import chex
 import jax
@@ -47,31 +47,81 @@ def aggregator_forward(
     of layers sharing a static global plan (`layer_groups`); `kept.KeptLayers` decides
     where the kept layers go. With the frames split over devices (`ops.shards.frame_layout`),
     S is this device's frames and the global blocks attend across all devices."""
+    stream, patch_tokens, saliency = aggregator_start(p, images, config)
+    out, _ = aggregator_layers(p, stream, config, keep_layers, project, images.shape[-2:], saliency)
+    return out, patch_tokens, saliency
+
+
+class Stream(NamedTuple):
+    """The aggregator between two of its layers (a pytree): the residual stream x
+    [B, S*P, C] and the compression state (None when dense; between programs its static
+    `geometry` is None, `aggregator_layers` sets it again)."""
+
+    x: jax.Array
+    state: compression.State | None
+
+
+def aggregator_start(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[Stream, jax.Array, jax.Array]:
+    """The aggregator before its first layer: (the `Stream` of the input tokens,
+    patch-embed tokens [B*S, h*w, C], saliency Psi [B, S, h*w])."""
     b, s, _, hh, ww = images.shape
-    layout = frame_layout(s)
-    project = dict(project or {})
     tokens, patch_tokens, saliency = input_tokens(p, images, config)
-    shape = (b, s) + tokens.shape[1:]  # (B, S, P, C)
-    geom = compression.Geometry(layout.frames, hh // config.patch_size, ww // config.patch_size,
-                                config.patch_start_idx)
-    pos = rope_tables(geom, config, s)
     state = None
     if not config.compression.is_dense:
         # (sequence-wide: every device holds all of it, from every frame's saliency)
-        state = compression.init_state(config.compression, layout.gather(saliency, 1), geom)
+        layout = frame_layout(s)
+        state = compression.init_state(config.compression, layout.gather(saliency, 1),
+                                       _geometry(config, layout.frames, (hh, ww)))
+    return Stream(tokens.reshape(b, -1, tokens.shape[-1]), state), patch_tokens, saliency
 
-    x = tokens.reshape(b, s * shape[2], shape[3])
-    kept = KeptLayers.start(config.depth, keep_layers, project, shape, config.compute_dtype, saliency)
+
+def aggregator_layers(
+    p: Params, stream: Stream, config: VGGTConfig, keep_layers: Iterable[int],
+    project: Mapping[int, Projection] | None, image_hw: tuple[int, int], dep: jax.Array,
+    layers: range | None = None,
+) -> tuple[dict[int, KeptLayer | ProjectedLayer], Stream]:
+    """The aggregator's `layers` (default: all of them) from `stream` -> (the kept and
+    projected layers among them, as `aggregator_forward` returns them; the `Stream`
+    after the last one). A run cut into parts (`model.low_memory`) cuts only after a
+    projected layer, where a scan ends. `dep`: the kept buffers are made after it
+    (docs/memory_layout.md)."""
+    x, state = stream
+    c = x.shape[-1]
+    geom = _geometry(config, frame_layout(_frames(x, config, image_hw)).frames, image_hw)
+    b, s = x.shape[0], x.shape[1] // geom.per_frame
+    shape = (b, s, geom.per_frame, c)  # (B, S, P, C)
+    if state is not None:
+        state = state._replace(geometry=geom)
+    project = dict(project or {})
+    pos = rope_tables(geom, config, s)
+    kept = KeptLayers.start(config.depth, keep_layers, project, shape, config.compute_dtype, dep)
     projected = {}
     for group in kept.scans(layer_groups(config, geom)):
+        if layers is not None:
+            if not set(group) <= set(layers):
+                if set(group) & set(layers):
+                    raise ValueError(f"layers {layers} cut the scan of layers {group}")
+                continue
         x, kept, state = _scan_layers(p, x, kept, group, pos, geom, config, state)
         if group[-1] in project:
             kept, projected[group[-1]], after = kept.project(group[-1], x, project[group[-1]], shape)
             p = weights_after(p, after)
-    out = kept.outputs(x, shape)
+    out = kept.outputs(x, shape) if layers is None or config.depth - 1 in layers else {}
     for i, layer in projected.items():
         out[i] = ProjectedLayer(layer.buf, layer.columns, layer.batch, out.get(i), layer.tokens)
-    return out, patch_tokens, saliency
+    return out, Stream(x, state)
+
+
+def _geometry(config: VGGTConfig, frames: int, image_hw: tuple[int, int]) -> compression.Geometry:
+    """The global blocks' sequence: `frames` frames (of the whole sequence) of
+    `image_hw` images."""
+    hh, ww = image_hw
+    return compression.Geometry(frames, hh // config.patch_size, ww // config.patch_size, config.patch_start_idx)
+
+
+def _frames(x: jax.Array, config: VGGTConfig, image_hw: tuple[int, int]) -> int:
+    """This device's frames in the stream x [B, S*P, C]."""
+    return x.shape[1] // _geometry(config, 1, image_hw).per_frame
 
 
 def input_tokens(p: Params, images: jax.Array, config: VGGTConfig) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -86,6 +86,9 @@ class MemoryReport:
     # (`rvggt plan --memory-gb`); None: memory_bytes is the target's
     own_memory_bytes: int | None = None
     low_memory: bool = False  # planned in the low-memory mode (`VGGTConfig.low_memory`)
+    # ((name, total bytes), ...) of the programs of a forward run in parts
+    # (`model.low_memory`): the figures above are the largest part's
+    parts: tuple = ()
     images_donated: bool = True  # the program may reuse the images' buffer (donate_argnums=1)
 
     @property
@@ -201,6 +204,11 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
     fields = dict(frames=frames, height=height, width=width, batch=batch, dtype=config.dtype, image_dtype=image_dtype.name,
                   param_dtype=param_dtype, preset=config.compression.name, low_memory=config.low_memory,
                   images_donated=donate_images)
+    from rvggt_jax.model.low_memory import runs_in_parts
+
+    if runs_in_parts(config, with_track, mesh is None and devices == 1):
+        return _parts_report(config, params, images, fields, None if target is None else get_target(target),
+                             backend, progress)
     if target is not None:
         return _target_report(config, params, images, queries, get_target(target), devices, fields, progress)
     t0 = time.perf_counter()
@@ -284,6 +292,35 @@ def _target_report(config, params, images, queries, target, devices: int, fields
                             **{**more, "memory_bytes": have or available})
     # (XLA:TPU compiles a program for a chip only when it fits the chip's HBM)
     return _report(compiled, time.perf_counter() - t0, fields, compiler_checked=target.platform == "tpu", **more)
+
+
+def _parts_report(config, params, images, fields: dict, target=None, backend=None, progress=None) -> MemoryReport:
+    """`memory_report` of the low-memory mode's forward in parts (`model.low_memory`): each
+    part compiled, the largest one's figures, every part's total in `parts`. A card runs
+    one part at a time, so it must hold the largest, not the sum."""
+    from rvggt_jax.model.low_memory import lowered_parts
+    from rvggt_jax.planning.targets import target_devices
+
+    t0 = time.perf_counter()
+    device = None if target is None else target_devices(target, 1)[0]
+    with unused_donation_allowed():
+        lowered = lowered_parts(params, images, config, device=device)
+    more: dict = {}
+    if target is not None:
+        have, what = target.memory()
+        more = dict(target=target.name, memory_bytes=have, memory_what=what, device_kind=device.device_kind,
+                    attention=attention_kernel(lowered["part 2"].as_text()))
+    reports = {}
+    for name, lo in lowered.items():
+        if target is None:
+            compiled, fallback = lo.compile(), None
+        else:
+            compiled, fallback = _compile_for(lo, target, progress)
+        reports[name] = _report(compiled, 0.0, fields, fallback=fallback, **more)
+    largest = max(reports.values(), key=lambda r: r.total_bytes)
+    return dataclasses.replace(largest, compile_seconds=time.perf_counter() - t0, compiled=None,
+                               parts=tuple((name, r.total_bytes) for name, r in reports.items()),
+                               peak_bytes=largest.peak_bytes)
 
 
 def _compile_for(lowered, target, progress=None) -> tuple[Any, str | None]:
