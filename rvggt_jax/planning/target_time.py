@@ -77,7 +77,8 @@ def device_flops(config: VGGTConfig, frames: int, height: int, width: int, batch
     global layers' attention, as the split program computes it
     (`cost.device_attention_flops`: a merging layer's ring attends to every merged row, not
     only the kept K/V slots), and the camera trunk, which attends across frames and which
-    `sharded_forward` runs on all frames on every device."""
+    `sharded_forward` runs on all frames on every device. The low-memory mode in parts
+    (`model.low_memory`) computes the aggregator's first layers twice."""
     from rvggt_jax.planning.cost import cost_report, device_attention_flops
     from rvggt_jax.planning.estimate import camera_head_flops, forward_flops
 
@@ -91,6 +92,12 @@ def device_flops(config: VGGTConfig, frames: int, height: int, width: int, batch
         split = batch * cost_report(config, frames, height, width)["global_attention_flops"]
         aggregator += sum(device_attention_flops(config, frames, height, width, devices, batch)) - split * share
     heads = batch * ((f["heads"] - camera) * share + camera)
+    from rvggt_jax.model.low_memory import runs_in_parts, split_layer
+
+    if devices == 1 and runs_in_parts(config):
+        # (in parts, part 2 runs layers 0..split again: their share of the layers, taken as
+        # even, once more)
+        aggregator *= 1 + (split_layer(config) + 1) / config.depth
     return dict(aggregator=aggregator, heads=heads, total=aggregator + heads)
 
 

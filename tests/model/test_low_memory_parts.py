@@ -83,3 +83,13 @@ def test_chunks_cover_every_frame_once_with_one_shape():
     assert low_memory.chunk_starts(64, 64) == [0]
     assert low_memory.chunk_starts(130, 64) == [0, 64, 66]
     assert low_memory.chunk_starts(2, 64) == [0]
+
+
+def test_the_time_estimate_counts_the_recomputed_layers(regime):
+    from rvggt_jax.planning.target_time import device_flops
+
+    _, config = regime
+    one = device_flops(config.with_low_memory(False), 100, 112, 154)["aggregator"]
+    parts = device_flops(config, 100, 112, 154)["aggregator"]
+    assert parts == pytest.approx(one * (1 + 12 / 24))
+    assert device_flops(config, 100, 112, 154, devices=2)["aggregator"] < one  # (a split: one program)
