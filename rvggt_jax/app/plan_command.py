@@ -167,8 +167,8 @@ def _describe(rep, target, label: str) -> list[str]:
     if rep.exhausted:
         lines.append("  arguments, outputs, temporaries: n/a (XLA refused the program before assigning its buffers)")
     else:
-        lines += [f"  arguments    {fmt_bytes(rep.argument_bytes)} "
-                  f"({'weights + the part' + chr(39) + 's inputs' if rep.parts else 'weights + images'})",
+        inputs = "weights + the part's inputs" if rep.parts else "weights + images"
+        lines += [f"  arguments    {fmt_bytes(rep.argument_bytes)} ({inputs})",
                   f"  outputs      {fmt_bytes(rep.output_bytes)}",
                   f"  temporaries  {fmt_bytes(rep.temp_bytes)}"]
         if rep.alias_bytes:

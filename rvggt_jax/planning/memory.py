@@ -206,9 +206,9 @@ def memory_report(config: VGGTConfig, frames: int, height: int, width: int, *, b
                   images_donated=donate_images)
     from rvggt_jax.model.low_memory import runs_in_parts
 
-    if runs_in_parts(config, with_track, mesh is None and devices == 1):
+    if backend is None and runs_in_parts(config, with_track, mesh is None and devices == 1):
         return _parts_report(config, params, images, fields, None if target is None else get_target(target),
-                             backend, progress)
+                             progress)
     if target is not None:
         return _target_report(config, params, images, queries, get_target(target), devices, fields, progress)
     t0 = time.perf_counter()
@@ -294,12 +294,12 @@ def _target_report(config, params, images, queries, target, devices: int, fields
     return _report(compiled, time.perf_counter() - t0, fields, compiler_checked=target.platform == "tpu", **more)
 
 
-def _parts_report(config, params, images, fields: dict, target=None, backend=None, progress=None) -> MemoryReport:
+def _parts_report(config, params, images, fields: dict, target=None, progress=None) -> MemoryReport:
     """`memory_report` of the low-memory mode's forward in parts (`model.low_memory`): each
     part compiled, the largest one's figures, every part's total in `parts`. A card runs
     one part at a time, so it must hold the largest, not the sum."""
     from rvggt_jax.model.low_memory import lowered_parts
-    from rvggt_jax.planning.targets import target_devices
+    from rvggt_jax.planning.targets import exhausted_hbm, target_devices
 
     t0 = time.perf_counter()
     device = None if target is None else target_devices(target, 1)[0]
@@ -309,13 +309,23 @@ def _parts_report(config, params, images, fields: dict, target=None, backend=Non
     if target is not None:
         have, what = target.memory()
         more = dict(target=target.name, memory_bytes=have, memory_what=what, device_kind=device.device_kind,
-                    attention=attention_kernel(lowered["part 2"].as_text()))
+                    attention=attention_kernel(lowered["part 2"].as_text()), compiler_checked=target.platform == "tpu")
     reports = {}
     for name, lo in lowered.items():
         if target is None:
             compiled, fallback = lo.compile(), None
         else:
-            compiled, fallback = _compile_for(lo, target, progress)
+            try:
+                compiled, fallback = _compile_for(lo, target, progress)
+            except Exception as e:  # noqa: BLE001 - XLA's runtime error types move between versions
+                exhausted = exhausted_hbm(str(e))
+                if exhausted is None:
+                    raise
+                # (XLA:TPU refuses a part that exceeds the chip: the run cannot fit)
+                return MemoryReport(**fields, argument_bytes=None, output_bytes=None, temp_bytes=None,
+                                    alias_bytes=None, compile_seconds=time.perf_counter() - t0,
+                                    needed_bytes=exhausted[0], parts=((name, exhausted[0]),),
+                                    **{**more, "compiler_checked": False, "memory_bytes": have or exhausted[1]})
         reports[name] = _report(compiled, 0.0, fields, fallback=fallback, **more)
     largest = max(reports.values(), key=lambda r: r.total_bytes)
     return dataclasses.replace(largest, compile_seconds=time.perf_counter() - t0, compiled=None,
