@@ -93,3 +93,20 @@ def test_the_time_estimate_counts_the_recomputed_layers(regime):
     parts = device_flops(config, 100, 112, 154)["aggregator"]
     assert parts == pytest.approx(one * (1 + 12 / 24))
     assert device_flops(config, 100, 112, 154, devices=2)["aggregator"] < one  # (a split: one program)
+
+
+def test_bf16_parts_within_twice_upstreams_own_deviation(tiny, golden):
+    """The mode as issue 54 plans it (bfloat16 weights and compute, dense), run in parts,
+    against the float32 fixture: within twice upstream's own bf16 deviation, as the
+    one-program mode (tests/model/test_low_memory.py)."""
+    from rvggt_jax.weights.checkpoint import cast_params
+    from tests.helpers import rel_err
+    from tests.helpers.tolerances import UPSTREAM_BF16
+
+    params, config = tiny
+    low = dataclasses.replace(config, enable_track=False).with_dtype("bfloat16").with_low_memory()
+    out = low_memory.low_memory_forward(cast_params(params, "bfloat16", heads=low.half_weight_heads),
+                                        golden["images"], low)
+    for key in OUTPUTS:
+        err = rel_err(np.asarray(out[key], np.float32), golden[key])
+        assert err <= 2 * UPSTREAM_BF16[key], (key, err)
