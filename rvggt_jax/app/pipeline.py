@@ -85,18 +85,18 @@ def run_model(params, images, config, compiled=None, mesh=None) -> dict[str, np.
     if mesh is None and compiled is None and runs_in_parts(config):
         # the low-memory mode runs in parts (`model.low_memory`), as `rvggt plan` plans it
         out = low_memory_forward(params, batch, config)
-        return {k: np.asarray(out[k])[0].astype(np.float32, copy=False) for k in _OUTPUT_KEYS if k in out}
-    forward = rvggt_forward
-    if mesh is not None:
-        from rvggt_jax.parallel.sharded import input_shardings, sharded_forward
+    else:
+        forward = rvggt_forward
+        if mesh is not None:
+            from rvggt_jax.parallel.sharded import input_shardings, sharded_forward
 
-        replicated, split = input_shardings(mesh, batch.shape[1])
-        params, batch = jax.device_put(params, replicated), jax.device_put(batch, split)
-        forward = functools.partial(sharded_forward, mesh=mesh)
-    # the batch is this call's own array: donated, XLA may reuse its buffer once the patch
-    # embed has read it (as `memory_report` plans the program)
-    with unused_donation_allowed():
-        out = (compiled if compiled is not None else jax.jit(forward, donate_argnums=1))(params, batch, config)
+            replicated, split = input_shardings(mesh, batch.shape[1])
+            params, batch = jax.device_put(params, replicated), jax.device_put(batch, split)
+            forward = functools.partial(sharded_forward, mesh=mesh)
+        # the batch is this call's own array: donated, XLA may reuse its buffer once the
+        # patch embed has read it (as `memory_report` plans the program)
+        with unused_donation_allowed():
+            out = (compiled if compiled is not None else jax.jit(forward, donate_argnums=1))(params, batch, config)
     # (float32 for what follows: the low-memory mode returns 16-bit depth and points)
     return {k: np.asarray(out[k])[0].astype(np.float32, copy=False) for k in _OUTPUT_KEYS if k in out}
 

@@ -48,14 +48,13 @@ def aggregator_forward(
     where the kept layers go. With the frames split over devices (`ops.shards.frame_layout`),
     S is this device's frames and the global blocks attend across all devices."""
     stream, patch_tokens, saliency = aggregator_start(p, images, config)
-    out, _ = aggregator_layers(p, stream, config, keep_layers, project, images.shape[-2:], saliency)
+    out = aggregator_layers(p, stream, config, keep_layers, project, images.shape[-2:], saliency)
     return out, patch_tokens, saliency
 
 
 class Stream(NamedTuple):
-    """The aggregator between two of its layers (a pytree): the residual stream x
-    [B, S*P, C] and the compression state (None when dense; between programs its static
-    `geometry` is None, `aggregator_layers` sets it again)."""
+    """The aggregator before its first layer: the residual stream x [B, S*P, C] and the
+    compression state (None when dense)."""
 
     x: jax.Array
     state: compression.State | None
@@ -79,19 +78,17 @@ def aggregator_layers(
     p: Params, stream: Stream, config: VGGTConfig, keep_layers: Iterable[int],
     project: Mapping[int, Projection] | None, image_hw: tuple[int, int], dep: jax.Array,
     layers: range | None = None,
-) -> tuple[dict[int, KeptLayer | ProjectedLayer], Stream]:
-    """The aggregator's `layers` (default: all of them) from `stream` -> (the kept and
-    projected layers among them, as `aggregator_forward` returns them; the `Stream`
-    after the last one). A run cut into parts (`model.low_memory`) cuts only after a
-    projected layer, where a scan ends. `dep`: the kept buffers are made after it
-    (docs/memory_layout.md)."""
+) -> dict[int, KeptLayer | ProjectedLayer]:
+    """The aggregator's layers 0.. up to the last of `layers` (default: all of them) from
+    `stream` -> the kept and projected layers among them, as `aggregator_forward` returns
+    them. `layers` may end only after a projected layer, where a scan ends (the
+    low-memory mode's part 1, `model.low_memory`). `dep`: the kept buffers are made
+    after it (docs/memory_layout.md)."""
     x, state = stream
     c = x.shape[-1]
     geom = _geometry(config, frame_layout(_frames(x, config, image_hw)).frames, image_hw)
     b, s = x.shape[0], x.shape[1] // geom.per_frame
     shape = (b, s, geom.per_frame, c)  # (B, S, P, C)
-    if state is not None:
-        state = state._replace(geometry=geom)
     project = dict(project or {})
     pos = rope_tables(geom, config, s)
     kept = KeptLayers.start(config.depth, keep_layers, project, shape, config.compute_dtype, dep)
@@ -109,7 +106,7 @@ def aggregator_layers(
     out = kept.outputs(x, shape) if layers is None or config.depth - 1 in layers else {}
     for i, layer in projected.items():
         out[i] = ProjectedLayer(layer.buf, layer.columns, layer.batch, out.get(i), layer.tokens)
-    return out, Stream(x, state)
+    return out
 
 
 def _geometry(config: VGGTConfig, frames: int, image_hw: tuple[int, int]) -> compression.Geometry:

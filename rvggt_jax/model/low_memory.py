@@ -47,7 +47,6 @@ from rvggt_jax.model.kept import ProjectedLayer
 from rvggt_jax.model.params import Params
 from rvggt_jax.ops.bits import HalfBuffer
 
-DENSE_HEADS = ("depth_head", "point_head")
 # Frames the heads' program takes at a time: VGGT-1B's four projected layers of 64
 # frames of 392 x 518 are 0.3 GiB in bfloat16, its 16-bit outputs 0.15 GiB.
 HEAD_CHUNK_FRAMES = 64
@@ -90,11 +89,15 @@ def check_config(config: VGGTConfig, with_track: bool = False) -> None:
         raise ValueError("the three-part low-memory forward: " + "; ".join(problems))
 
 
+def _enabled(config: VGGTConfig) -> dict[str, bool]:
+    """{DPT head: whether the config runs it}."""
+    return {"depth_head": config.enable_depth, "point_head": config.enable_point}
+
+
 def _projections(params: Params, config: VGGTConfig, image_hw: tuple[int, int]):
     grid = config.token_grid(image_hw)
-    enabled = {name: getattr(config, f"enable_{name.split('_')[0]}") for name in DENSE_HEADS}
     per_group = functools.partial(remat.checkpoint, config=config, part="head")
-    return _head_projections(params, config, grid, False, enabled, per_group)
+    return _head_projections(params, config, grid, False, _enabled(config), per_group)
 
 
 def _float32_heads(params: Params) -> Params:
@@ -117,8 +120,7 @@ def second_part(params: Params, images: jax.Array, config: VGGTConfig
     program given the stream held it twice (the argument and the copy XLA:GPU's loops
     update: 17.5 GiB at 1000 frames of VGGT-1B on an H100 against 16), a program that
     makes it holds it once."""
-    out, poses = _aggregator_part(params, images, config, late=True)
-    return out, poses
+    return _aggregator_part(params, images, config, late=True)
 
 
 def _aggregator_part(params: Params, images: jax.Array, config: VGGTConfig, late: bool):
@@ -129,8 +131,8 @@ def _aggregator_part(params: Params, images: jax.Array, config: VGGTConfig, late
         params = _float32_heads(params)
         project = {i: p for i, p in _projections(params, config, hw).items() if (i > split) == late}
         stream, _, saliency = aggregator_start(params["aggregator"], images, config)
-        out, _ = aggregator_layers(params["aggregator"], stream, config, (), project, hw, saliency,
-                                   layers=None if late else range(split + 1))
+        out = aggregator_layers(params["aggregator"], stream, config, (), project, hw, saliency,
+                                layers=None if late else range(split + 1))
         poses = None
         if late:
             poses = camera_head(params["camera_head"], out[config.depth - 1].token(0)[:, :, None], config.camera_head)
@@ -144,8 +146,7 @@ def heads_part(params: Params, layers: dict[int, ProjectedLayer], config: VGGTCo
     grid = config.token_grid(image_hw)
     per_group = functools.partial(remat.checkpoint, config=config, part="head")
     with config_scope(config):
-        heads = {name: heads_in_float32(params[name]) for name in DENSE_HEADS if name in params
-                 and getattr(config, f"enable_{name.split('_')[0]}")}
+        heads = {name: heads_in_float32(params[name]) for name, on in _enabled(config).items() if on}
         layers = {i: _restored(layer, config.compute_dtype) for i, layer in layers.items()}
         return dense_heads(heads, layers, config.dpt_head, grid, per_group, half_outputs=config.low_memory)
 
