@@ -11,6 +11,7 @@ import sys
 import pytest
 
 from rvggt_jax.app import host_heap
+from tests.helpers.allocator import without_preload
 from tests.helpers.paths import REPO as ROOT
 
 pytestmark = pytest.mark.skipif(host_heap._glibc() is None, reason="glibc's malloc only")
@@ -54,7 +55,9 @@ PAGES_64MIB = (64 << 20) // 4096
 
 
 def _run(probe: str, call: str, **env) -> list[str]:
-    full_env = {k: v for k, v in os.environ.items() if k != host_heap.OPT_OUT_ENV and not k.startswith("MALLOC_")}
+    # (glibc's malloc itself: without the suite's jemalloc, tests/helpers/allocator.py)
+    full_env = {k: v for k, v in without_preload().items()
+                if k != host_heap.OPT_OUT_ENV and not k.startswith("MALLOC_")}
     full_env.update(env, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
     return subprocess.run([sys.executable, "-c", probe.format(call=call)], env=full_env, cwd=ROOT,
                           capture_output=True, text=True, check=True).stdout.split()

@@ -15,6 +15,7 @@ from PIL import Image
 
 from rvggt_jax.io.cameras import write_cameras_json
 from rvggt_jax.io.ply import write_ply
+from tests.helpers.allocator import without_preload
 
 S = 4
 
@@ -94,7 +95,8 @@ def test_viewer_in_headless_chromium(tmp_path):
         r = subprocess.run([_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
                             "--enable-unsafe-swiftshader", "--window-size=1000,700", "--virtual-time-budget=15000",
                             f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
-                            f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=180)
+                            f"http://127.0.0.1:{port}/"], capture_output=True, text=True, timeout=180,
+                           env=without_preload())
         assert shot.is_file(), r.stderr[-2000:]
         assert connected, "the page never opened a websocket to the viewer"
         frustums = [server.scene.get_handle_by_name(f"/cameras/frame_{i:03d}") for i in range(S)]
@@ -454,7 +456,7 @@ def test_upload_form_reconstructs_in_headless_chromium(tmp_path):
     browser = subprocess.Popen([_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
                                 "--enable-unsafe-swiftshader", "--window-size=1000,700", "--remote-debugging-port=0",
                                 f"--user-data-dir={profile}", f"http://127.0.0.1:{port}/"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=without_preload())
     page = None
     try:
         deadline = time.monotonic() + 120
