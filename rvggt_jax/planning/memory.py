@@ -270,7 +270,7 @@ def _target_report(config, params, images, queries, target, devices: int, fields
     import numpy as np
 
     from rvggt_jax.parallel.sharded import FRAMES_AXIS
-    from rvggt_jax.planning.targets import exhausted_hbm, target_devices
+    from rvggt_jax.planning.targets import target_devices
 
     devs = target_devices(target, devices)
     mesh = None if devices == 1 else jax.sharding.Mesh(np.asarray(devs), (FRAMES_AXIS,),
@@ -283,15 +283,26 @@ def _target_report(config, params, images, queries, target, devices: int, fields
     try:
         compiled, more["fallback"] = _compile_for(lowered, target, progress)
     except Exception as e:  # noqa: BLE001 - XLA's runtime error types move between versions
-        exhausted = exhausted_hbm(str(e))
-        if exhausted is None:
-            raise
-        needed, available = exhausted
-        return MemoryReport(**fields, argument_bytes=None, output_bytes=None, temp_bytes=None, alias_bytes=None,
-                            compile_seconds=time.perf_counter() - t0, needed_bytes=needed,
-                            **{**more, "memory_bytes": have or available})
+        return _exhausted_report(e, fields, more, have, t0)
     # (XLA:TPU compiles a program for a chip only when it fits the chip's HBM)
     return _report(compiled, time.perf_counter() - t0, fields, compiler_checked=target.platform == "tpu", **more)
+
+
+def _exhausted_report(error: Exception, fields: dict, more: dict, have, t0: float,
+                      part: str | None = None) -> MemoryReport:
+    """The report of a program (or of the low-memory mode's `part`) that the target's
+    compiler refused for exceeding the chip's memory; `error` raised again when it is
+    anything else."""
+    from rvggt_jax.planning.targets import exhausted_hbm
+
+    exhausted = exhausted_hbm(str(error))
+    if exhausted is None:
+        raise error
+    needed, available = exhausted
+    return MemoryReport(**fields, argument_bytes=None, output_bytes=None, temp_bytes=None, alias_bytes=None,
+                        compile_seconds=time.perf_counter() - t0, needed_bytes=needed,
+                        **({} if part is None else {"parts": ((part, needed),)}),
+                        **{**more, "memory_bytes": have or available})
 
 
 def _parts_report(config, params, images, fields: dict, target=None, progress=None) -> MemoryReport:
@@ -299,7 +310,7 @@ def _parts_report(config, params, images, fields: dict, target=None, progress=No
     part compiled, the largest one's figures, every part's total in `parts`. A card runs
     one part at a time, so it must hold the largest, not the sum."""
     from rvggt_jax.model.low_memory import lowered_parts
-    from rvggt_jax.planning.targets import exhausted_hbm, target_devices
+    from rvggt_jax.planning.targets import target_devices
 
     t0 = time.perf_counter()
     device = None if target is None else target_devices(target, 1)[0]
@@ -318,14 +329,8 @@ def _parts_report(config, params, images, fields: dict, target=None, progress=No
             try:
                 compiled, fallback = _compile_for(lo, target, progress)
             except Exception as e:  # noqa: BLE001 - XLA's runtime error types move between versions
-                exhausted = exhausted_hbm(str(e))
-                if exhausted is None:
-                    raise
                 # (XLA:TPU refuses a part that exceeds the chip: the run cannot fit)
-                return MemoryReport(**fields, argument_bytes=None, output_bytes=None, temp_bytes=None,
-                                    alias_bytes=None, compile_seconds=time.perf_counter() - t0,
-                                    needed_bytes=exhausted[0], parts=((name, exhausted[0]),),
-                                    **{**more, "compiler_checked": False, "memory_bytes": have or exhausted[1]})
+                return _exhausted_report(e, fields, {**more, "compiler_checked": False}, have, t0, part=name)
         reports[name] = _report(compiled, 0.0, fields, fallback=fallback, **more)
     largest = max(reports.values(), key=lambda r: r.total_bytes)
     return dataclasses.replace(largest, compile_seconds=time.perf_counter() - t0, compiled=None,
