@@ -126,6 +126,9 @@ def add_train_small_parser(sub) -> None:
                    help="frames per scene (default: the recipe's 2-8 in buckets 2,4,8)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save-every", type=int, default=None, help="checkpoint every N steps (default: the recipe's)")
+    p.add_argument("--layer-scale", type=float, default=None, metavar="G",
+                   help="start the frame, global and camera-trunk LayerScale at G (default: upstream's 0.01, the "
+                        "shipped run's; from scratch they stay there: the model card)")
     p.add_argument("--ship", action="store_true",
                    help="when training is done, store OUT/model in the package as rvggt-small (float16 weights)")
     p.add_argument("--quiet", action="store_true")
@@ -148,6 +151,10 @@ def run_train_small_command(args) -> int:
         if args.save_every < 1:
             raise InputError(f"--save-every must be at least 1; got {args.save_every}")
         changes["save_every"] = args.save_every
+    if args.layer_scale is not None:
+        if not args.layer_scale > 0:
+            raise InputError(f"--layer-scale must be > 0; got {args.layer_scale}")
+        changes["layer_scale"] = args.layer_scale
     if args.size is not None:
         try:
             changes["size"] = tuple(int(v) for v in args.size.lower().split("x"))

@@ -45,6 +45,9 @@ class SmallRecipe:
     seed: int = 0
     save_every: int = 250
     log_every: int = 25
+    # the LayerScale of the frame, global and camera-trunk blocks at step 0 (None: upstream's
+    # 0.01, see `with_layer_scale`)
+    layer_scale: float | None = None
 
 
 def train_small(out: str | Path, recipe: SmallRecipe = SmallRecipe(), *, stop_at: int | None = None,
@@ -64,7 +67,7 @@ def train_small(out: str | Path, recipe: SmallRecipe = SmallRecipe(), *, stop_at
     data_mod._check_size(recipe.size)  # bad settings fail before anything is built
     data_mod.frame_plan(recipe.frames, recipe.buckets)
     config = VGGTConfig.rvggt_small()
-    init = lambda: rvggt_jax.init_params(config, recipe.seed)  # noqa: E731
+    init = lambda: with_layer_scale(rvggt_jax.init_params(config, recipe.seed), recipe.layer_scale)  # noqa: E731
     # a resumed run reads every parameter from OUT/state: their shapes are enough
     params = jax.eval_shape(init) if latest_step(out) is not None else init()
     tc = TrainConfig(learning_rate=recipe.learning_rate, warmup_steps=recipe.warmup_steps, total_steps=recipe.steps,
@@ -86,6 +89,32 @@ def train_small(out: str | Path, recipe: SmallRecipe = SmallRecipe(), *, stop_at
     if (result / "config.json").is_file():
         record_train_size(result, recipe.size)
     return result
+
+
+def with_layer_scale(params: dict, value: float | None) -> dict:
+    """`params` with every LayerScale gamma outside the DINO patch embed (the frame, global
+    and camera-trunk blocks) set to `value`; None returns `params` unchanged.
+
+    Upstream starts these at 0.01 because its aggregator starts from a trained DINO and
+    trains for days. From scratch on a CPU budget they barely move (rvggt-small's ended at
+    0.007-0.010 after 3200 steps), so each block adds about 1% to the token stream; this
+    starts them at full strength instead. It is not what limits rvggt-small's cameras:
+    see its model card, "What limits the cameras" (`benchmarks/camera_probe.py`).
+    """
+    if value is None:
+        return params
+    if not value > 0:
+        raise ValueError(f"layer_scale must be > 0; got {value}")
+    import jax
+    import jax.numpy as jnp
+
+    def set_gamma(path, leaf):
+        keys = [getattr(k, "key", None) for k in path]
+        if keys[-1] == "gamma" and "patch_embed" not in keys:
+            return jnp.full_like(leaf, value)
+        return leaf
+
+    return jax.tree_util.tree_map_with_path(set_gamma, params)
 
 
 def record_train_size(model_dir: str | Path, size: tuple[int, int]) -> None:

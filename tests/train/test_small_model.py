@@ -21,7 +21,7 @@ from rvggt_jax.eval.heldout import images_of, score_scene, summarize
 from rvggt_jax.errors import InputError
 from rvggt_jax.model.forward import rvggt_forward
 from rvggt_jax.synthetic import HELD_OUT_SEEDS, make_scene
-from rvggt_jax.train.small import SmallRecipe, train_image_size, train_small
+from rvggt_jax.train.small import SmallRecipe, train_image_size, train_small, with_layer_scale
 from rvggt_jax.train.step import latest_step
 from rvggt_jax.weights.pretrained import bundled_path
 
@@ -87,6 +87,34 @@ def test_train_small_runs_a_few_steps_and_resumes(tmp_path):
     assert all(np.isfinite(r["loss_objective"]) and r["loss_track"] > 0 for r in recs)
     params, config = rvggt_jax.load_pretrained(model, device_put=False)
     assert config == VGGTConfig.rvggt_small() and "track_head" in params
+
+
+def test_layer_scale_sets_the_aggregator_and_camera_gammas_not_dinos():
+    g = lambda v: {"gamma": np.full(4, v, np.float32)}  # noqa: E731
+    tree = {"aggregator": {"patch_embed": {"blocks": {"0": {"ls1": g(1.0)}}},
+                           "frame_blocks": {"0": {"ls1": g(0.01), "ls2": g(0.01), "attn": {"proj": {"weight": np.ones(2)}}}},
+                           "global_blocks": {"5": {"ls2": g(0.01)}}},
+            "camera_head": {"trunk": {"0": {"ls1": g(0.01)}}, "pose_branch": {"weight": np.full(3, 0.01)}}}
+    out = with_layer_scale(tree, 0.5)
+    assert float(out["aggregator"]["patch_embed"]["blocks"]["0"]["ls1"]["gamma"][0]) == 1.0
+    for block in (out["aggregator"]["frame_blocks"]["0"], out["aggregator"]["global_blocks"]["5"],
+                  out["camera_head"]["trunk"]["0"]):
+        for ls in ("ls1", "ls2"):
+            if ls in block:
+                np.testing.assert_array_equal(block[ls]["gamma"], np.full(4, 0.5, np.float32))
+    np.testing.assert_array_equal(out["camera_head"]["pose_branch"]["weight"], np.full(3, 0.01))
+    np.testing.assert_array_equal(out["aggregator"]["frame_blocks"]["0"]["attn"]["proj"]["weight"], np.ones(2))
+    assert with_layer_scale(tree, None) is tree
+    with pytest.raises(ValueError, match="layer_scale"):
+        with_layer_scale(tree, 0.0)
+
+
+def test_train_small_command_refuses_a_bad_layer_scale(tmp_path, capsys):
+    from rvggt_jax.app.cli import main
+
+    assert main(["train-small", "--out", str(tmp_path / "run"), "--layer-scale", "0", "--quiet"]) != 0
+    assert "--layer-scale must be > 0" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 def test_train_small_refuses_bad_settings_before_building(tmp_path):
