@@ -46,13 +46,6 @@ def _load(args):
     return params, dataclasses.replace(config, enable_track=False)
 
 
-def _angle(ext, i: int, j: int) -> float:
-    import numpy as np
-
-    r = ext[j, :3, :3] @ ext[i, :3, :3].T
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default="rvggt-small")
@@ -63,6 +56,7 @@ def main(argv=None) -> int:
     import jax
     import numpy as np
 
+    from rvggt_jax.eval.camera import rotation_angle_deg
     from rvggt_jax.eval.heldout import images_of, predicted_cameras
     from rvggt_jax.model.forward import rvggt_forward
     from rvggt_jax.synthetic import HELD_OUT_SEEDS, make_scene
@@ -94,8 +88,9 @@ def main(argv=None) -> int:
         assert seed in HELD_OUT_SEEDS
         sc = make_scene(frames=2, height=h, width=w, seed=seed, arc_deg=5.0 + 55.0 * ((i * 5) % 12) / 11)
         ext, _ = predicted_cameras(jax.device_get(fn(params, images_of(sc))), (h, w))
-        pred.append(_angle(ext, 0, 1))
-        true.append(_angle(sc.extrinsics, 0, 1))
+        # the rotation between the pair's two cameras (world-to-camera [2, 3, 4])
+        pred.append(float(rotation_angle_deg(ext[0, :3, :3], ext[1, :3, :3])))
+        true.append(float(rotation_angle_deg(sc.extrinsics[0, :3, :3], sc.extrinsics[1, :3, :3])))
     pred, true = np.array(pred), np.array(true)
     print("\n| pairs (deg) | values |\n|---|---|")
     print(f"| true relative rotation | {', '.join(f'{v:.1f}' for v in true)} |")
